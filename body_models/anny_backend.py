@@ -1,0 +1,251 @@
+"""anny backend (default): 13,718 vertices, 104 bones with full fingers, 52 face actions.
+
+anny (Apache-2.0, CC0 assets) ships its model in its wheel; its first
+construction builds a cache (about a minute), later ones load it in about a
+second. The cache folder is configurable (`cache_dir`, else $ANNY_CACHE_DIR,
+else ~/.cache/anny).
+
+Conventions, measured on the rest mesh: model coordinates are z-up with the
+person facing -y and their left on +x; the root bone sits at the origin
+(pelvis). anny's 'local-ref' pose parameters rotate each bone in axes that are
+aligned with the model axes at rest, so for a standing body x is the
+flexion/extension axis of spine, hips and knees (+x bends the spine forward and
+the knee, -x swings the thigh forward), y abducts, z twists.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from body_models.base import BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix
+from body_models.keypoints import BODY_25, FINGERS, NUM_BODY_HANDS
+from body_models.regions import contact_regions, farthest_point_subsample, palm_normal
+
+log = logging.getLogger(__name__)
+
+SIDES = ("L", "R")
+# anny finger chains: finger1 is the thumb ... finger5 the little finger.
+FINGER_BONES = {finger: f"finger{k + 1}" for k, finger in enumerate(FINGERS)}
+PHENOTYPES = ["gender", "age", "muscle", "weight", "height", "proportions"]
+COCO_TO_BODY25 = {
+    "nose": "nose", "right_shoulder": "right_shoulder", "right_elbow": "right_elbow",
+    "right_wrist": "right_wrist", "left_shoulder": "left_shoulder", "left_elbow": "left_elbow",
+    "left_wrist": "left_wrist", "right_hip": "right_hip", "right_knee": "right_knee",
+    "right_ankle": "right_ankle", "left_hip": "left_hip", "left_knee": "left_knee",
+    "left_ankle": "left_ankle", "right_eye": "right_eye", "left_eye": "left_eye",
+    "right_ear": "right_ear", "left_ear": "left_ear", "left_big_toe": "left_big_toe",
+    "left_small_toe": "left_small_toe", "left_heel": "left_heel", "right_big_toe": "right_big_toe",
+    "right_small_toe": "right_small_toe", "right_heel": "right_heel",
+}
+
+
+def is_hand_bone(label: str) -> bool:
+    return label.startswith(("finger", "metacarpal"))
+
+
+def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
+    """Construct the anny model, building its cache under `cache_dir` the first time."""
+    import anny
+    import anny.paths
+
+    if cache_dir is not None:
+        Path(cache_dir).mkdir(parents=True, exist_ok=True)
+        anny.paths.set_anny_cache_path(cache_dir)
+    cache = anny.paths.get_anny_cache_path()
+    if not any(cache.glob("**/*")):
+        log.warning("building the anny cache in %s (about a minute, once)", cache)
+    return anny.Anny(facial_actions="all", pose_parameterization="local-ref", skinning_method=skinning)
+
+
+class AnnyBody(BodyModel):
+    name = "anny"
+
+    def __init__(self, device="cpu", dtype=torch.float32, cache_dir=None, skinning: str = "lbs"):
+        super().__init__()
+        import anny
+
+        core = build_anny(cache_dir, skinning).to(dtype=dtype)
+        self.core = core
+        labels = list(core.bone_labels)
+        self.joint_names = labels
+        self.body_joint_names = [b for b in labels[1:] if not is_hand_bone(b)]
+        self.hand_joint_names = [b[:-2] for b in labels if is_hand_bone(b) and b.endswith(".L")]
+        self.num_shape = len(core.phenotype_labels)
+        self.num_expression = len(core.facial_action_labels)
+        self.expression_names = list(core.facial_action_labels)
+        index = {b: i for i, b in enumerate(labels)}
+        self._index = index
+        self.register_buffer("body_bone_ids", torch.tensor([index[b] for b in self.body_joint_names]))
+        for side in SIDES:
+            ids = [index[f"{h}.{side}"] for h in self.hand_joint_names]
+            self.register_buffer(f"hand_bone_ids_{side}", torch.tensor(ids))
+        self.register_buffer("faces", core.get_triangular_faces().long())
+
+        coco = anny.KeypointsRegressor.coco(core)
+        self._coco_labels = list(coco.labels)
+        self.register_buffer("coco_weights", coco.regression_weights.to(dtype))  # (23, V)
+
+        rest = core(None, None)
+        rest_vertices = rest["vertices"][0].detach().double().cpu().numpy()
+        rest_heads = rest["bone_poses"][0, :, :3, 3].detach().double().cpu().numpy()
+        weights = self._dense_weights(core)  # (V, J)
+        dominant = weights.argmax(1)
+        self.register_buffer("fingertip_vertex_ids", self._fingertip_vertices(rest_vertices, rest_heads, dominant))
+        self.up_axis = np.array([0.0, 0.0, 1.0])
+        self.forward_axis = np.array([0.0, -1.0, 0.0])
+        self.contact_regions = self._regions(rest_vertices, rest_heads, dominant)
+        for side in SIDES:
+            self.register_buffer(f"finger_flex_axes_{side}", self._flex_axes(rest_vertices, rest_heads, side))
+        self.fitting_subsample = torch.from_numpy(farthest_point_subsample(rest_vertices, 2000))
+        self.keypoint_valid = torch.ones(NUM_BODY_HANDS, dtype=torch.bool)
+        self.to(device)
+
+    # -- construction helpers -------------------------------------------------
+    @staticmethod
+    def _dense_weights(core) -> np.ndarray:
+        ids = core.vertex_bone_indices.long().cpu().numpy()
+        w = core.vertex_bone_weights.double().cpu().numpy()
+        dense = np.zeros((ids.shape[0], core.bone_count))
+        np.add.at(dense, (np.arange(ids.shape[0])[:, None].repeat(ids.shape[1], 1), ids), w)
+        return dense
+
+    def _fingertip_vertices(self, vertices, heads, dominant) -> torch.Tensor:
+        """Per side and finger, the vertex furthest along the distal phalanx: the tip."""
+        tips = []
+        for side in SIDES:
+            for finger in FINGERS:
+                chain = FINGER_BONES[finger]
+                mid, distal = self._index[f"{chain}-2.{side}"], self._index[f"{chain}-3.{side}"]
+                direction = heads[distal] - heads[mid]
+                candidates = np.flatnonzero(dominant == distal)
+                along = (vertices[candidates] - heads[distal]) @ direction
+                tips.append(int(candidates[np.argmax(along)]))
+        return torch.tensor(tips)  # (10,) left thumb..little, right thumb..little
+
+    def _flex_axes(self, vertices, heads, side) -> torch.Tensor:
+        """(Jh, 3) rest-frame axis per hand bone about which a positive angle curls it towards the palm."""
+        tips = self.fingertip_vertex_ids.numpy()[(0 if side == "L" else 5):][:5]
+        palm = palm_normal(
+            heads[self._index[f"wrist.{side}"]], heads[self._index[f"finger2-1.{side}"]],
+            heads[self._index[f"finger5-1.{side}"]], side,
+        )
+        axes = []
+        for name in self.hand_joint_names:
+            head = heads[self._index[f"{name}.{side}"]]
+            if name.startswith("metacarpal"):
+                finger = int(name[-1]) + 1  # metacarpal k carries finger k+1
+                end = heads[self._index[f"finger{finger}-1.{side}"]]
+            else:
+                chain, k = name.split("-")
+                end = heads[self._index[f"{chain}-{int(k) + 1}.{side}"]] if k != "3" else vertices[tips[int(chain[-1]) - 1]]
+            axis = np.cross(end - head, palm)
+            axes.append(axis / np.linalg.norm(axis))
+        return torch.tensor(np.array(axes), dtype=self.dtype)
+
+    def curl_fingers(self, params: BodyParams, side: str, amount: torch.Tensor | float, thumb: float = 0.6) -> None:
+        """Close one hand in place: `amount` in radians per finger joint (B,) or scalar; metacarpals stay."""
+        axes = getattr(self, f"finger_flex_axes_{side}")  # (Jh, 3)
+        amount = torch.as_tensor(amount, dtype=self.dtype, device=axes.device).reshape(-1, 1, 1)
+        scale = torch.tensor(
+            [0.0 if n.startswith("metacarpal") else (thumb if n.startswith("finger1") else 1.0) for n in self.hand_joint_names],
+            dtype=self.dtype, device=axes.device,
+        )[None, :, None]
+        pose = params.left_hand_pose if side == "L" else params.right_hand_pose
+        pose[:] = amount * scale * axes[None]
+
+    def _regions(self, vertices, heads, dominant) -> dict[str, torch.Tensor]:
+        def ids(predicate):
+            return [i for i, b in enumerate(self.joint_names) if predicate(b)]
+
+        groups = {}
+        palms = {}
+        for side in SIDES:
+            groups[f"hand.{side}"] = ids(lambda b: b.endswith(f".{side}") and (is_hand_bone(b) or b.startswith("wrist")))
+            groups[f"foot.{side}"] = ids(lambda b: b.endswith(f".{side}") and b.startswith(("foot", "toe")))
+            groups[f"forearm.{side}"] = ids(lambda b: b.endswith(f".{side}") and b.startswith("lowerarm"))
+            palms[side] = palm_normal(
+                heads[self._index[f"wrist.{side}"]],
+                heads[self._index[f"finger2-1.{side}"]],
+                heads[self._index[f"finger5-1.{side}"]],
+                side,
+            )
+        groups["thigh"] = ids(lambda b: b.startswith("upperleg"))
+        groups["pelvis"] = ids(lambda b: b.startswith(("pelvis", "root", "spine05")))
+        faces = self.faces.cpu().numpy()
+        regions = contact_regions(
+            vertices, faces, dominant, groups, palms,
+            up=np.array([0.0, 0.0, 1.0]), forward=np.array([0.0, -1.0, 0.0]),
+            hip_height=float(heads[self._index["upperleg01.L"], 2]),
+            knee_height=float(heads[self._index["lowerleg01.L"], 2]),
+        )
+        return {name: torch.from_numpy(v) for name, v in regions.items()}
+
+    # -- interface ----------------------------------------------------------------
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.coco_weights.dtype
+
+    @property
+    def num_vertices(self) -> int:
+        return int(self.coco_weights.shape[1])
+
+    def neutral_shape(self) -> torch.Tensor:
+        return torch.full((1, self.num_shape), 0.5)
+
+    def locate_joint(self, joint: str) -> tuple[str, int]:
+        if is_hand_bone(joint):
+            side = joint[-1]
+            return side, self.hand_joint_names.index(joint[:-2])
+        if joint not in self.body_joint_names:
+            raise KeyError(f"unknown anny bone {joint!r}")
+        return "body", self.body_joint_names.index(joint)
+
+    def bone_rotations(self, params: BodyParams) -> torch.Tensor:
+        """(B, 104, 3, 3) local rotations for every bone; the root stays identity."""
+        batch = params.batch_size
+        rotations = torch.eye(3, dtype=self.dtype, device=self.faces.device).repeat(batch, len(self.joint_names), 1, 1)
+        rotations = rotations.index_copy(1, self.body_bone_ids, axis_angle_to_matrix(params.body_pose))
+        rotations = rotations.index_copy(1, self.hand_bone_ids_L, axis_angle_to_matrix(params.left_hand_pose))
+        rotations = rotations.index_copy(1, self.hand_bone_ids_R, axis_angle_to_matrix(params.right_hand_pose))
+        return rotations
+
+    def forward(self, params: BodyParams) -> BodyOutput:
+        rotations = self.bone_rotations(params)  # (B, J, 3, 3)
+        homogeneous = torch.zeros(*rotations.shape[:2], 4, 4, dtype=self.dtype, device=rotations.device)
+        homogeneous[..., :3, :3] = rotations
+        homogeneous[..., 3, 3] = 1.0
+        out = self.core(homogeneous, phenotype_kwargs=params.shape, facial_actions=params.expression)
+        vertices = out["vertices"]  # (B, V, 3) model coordinates
+        joints = out["bone_poses"][..., :3, 3]  # (B, J, 3)
+        keypoints = self._openpose_keypoints(vertices, joints)
+        return BodyOutput(
+            vertices=self.to_world(vertices, params),
+            joints=self.to_world(joints, params),
+            keypoints=self.to_world(keypoints, params),
+        )
+
+    def _openpose_keypoints(self, vertices: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
+        """(B, 67, 3): BODY_25 from anny's COCO+feet regressor, hands from finger bones and tips."""
+        coco = torch.einsum("kv,bvd->bkd", self.coco_weights, vertices)  # (B, 23, 3)
+        named = {label: coco[:, i] for i, label in enumerate(self._coco_labels)}
+        named["neck"] = (named["left_shoulder"] + named["right_shoulder"]) / 2
+        named["mid_hip"] = (named["left_hip"] + named["right_hip"]) / 2
+        # The wrist bone head, not the regressed surface point, so finger poses leave it alone.
+        named["left_wrist"] = joints[:, self._index["wrist.L"]]
+        named["right_wrist"] = joints[:, self._index["wrist.R"]]
+        body = torch.stack([named[COCO_TO_BODY25.get(n, n)] for n in BODY_25], dim=1)  # (B, 25, 3)
+        tips = vertices[:, self.fingertip_vertex_ids]  # (B, 10, 3)
+        hands = []
+        for s, side in enumerate(SIDES):
+            points = [named["left_wrist" if side == "L" else "right_wrist"]]
+            for f, finger in enumerate(FINGERS):
+                chain = FINGER_BONES[finger]
+                for k in (1, 2, 3):
+                    points.append(joints[:, self._index[f"{chain}-{k}.{side}"]])
+                points.append(tips[:, 5 * s + f])
+            hands.append(torch.stack(points, dim=1))  # (B, 21, 3)
+        return torch.cat([body] + hands, dim=1)

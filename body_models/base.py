@@ -1,0 +1,189 @@
+"""The one narrow interface every body model backend implements.
+
+A backend turns a :class:`BodyParams` batch into a :class:`BodyOutput`:
+world-space vertices, joints and OpenPose-ordered keypoints. Stages only ever
+talk to this interface, so the fitting code does not care whether anny or
+SMPL-X is underneath.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+PARAM_FIELDS = (
+    "shape",
+    "global_orient",
+    "transl",
+    "body_pose",
+    "left_hand_pose",
+    "right_hand_pose",
+    "expression",
+)
+
+
+@dataclass
+class BodyParams:
+    """A batch of body-model parameters, batch dimension first.
+
+    shape (B, S); global_orient (B, 3) axis-angle; transl (B, 3) metres;
+    body_pose (B, Jb, 3), left_hand_pose / right_hand_pose (B, Jh, 3) axis-angle
+    per bone in the model's `body_joint_names` / `hand_joint_names` order;
+    expression (B, E). World vertices are ``R(global_orient) @ v_model + transl``.
+    """
+
+    shape: torch.Tensor
+    global_orient: torch.Tensor
+    transl: torch.Tensor
+    body_pose: torch.Tensor
+    left_hand_pose: torch.Tensor
+    right_hand_pose: torch.Tensor
+    expression: torch.Tensor
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.transl.shape[0])
+
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {name: getattr(self, name) for name in PARAM_FIELDS}
+
+    def map(self, fn) -> "BodyParams":
+        """A new BodyParams with `fn` applied to every tensor."""
+        return BodyParams(**{name: fn(t) for name, t in self.tensors().items()})
+
+    def to(self, *args, **kwargs) -> "BodyParams":
+        return self.map(lambda t: t.to(*args, **kwargs))
+
+    def detach(self) -> "BodyParams":
+        return self.map(lambda t: t.detach())
+
+    def clone(self) -> "BodyParams":
+        return self.map(lambda t: t.clone())
+
+    def __getitem__(self, index) -> "BodyParams":
+        """Select frames: an int keeps the batch dimension."""
+        if isinstance(index, int):
+            index = slice(index, index + 1)
+        return self.map(lambda t: t[index])
+
+    @staticmethod
+    def cat(items: list["BodyParams"]) -> "BodyParams":
+        return BodyParams(
+            **{name: torch.cat([getattr(p, name) for p in items]) for name in PARAM_FIELDS}
+        )
+
+    def to_numpy_dict(self) -> dict[str, np.ndarray]:
+        return {name: t.detach().cpu().numpy() for name, t in self.tensors().items()}
+
+    @staticmethod
+    def from_numpy_dict(data, device="cpu", dtype=torch.float32) -> "BodyParams":
+        missing = [name for name in PARAM_FIELDS if name not in data]
+        if missing:
+            raise KeyError(f"body parameters are missing {missing}")
+        return BodyParams(
+            **{name: torch.as_tensor(np.asarray(data[name]), device=device, dtype=dtype) for name in PARAM_FIELDS}
+        )
+
+
+@dataclass
+class BodyOutput:
+    """Posed body in world coordinates.
+
+    vertices (B, V, 3); joints (B, J, 3) in the model's `joint_names` order;
+    keypoints (B, K, 3) in OpenPose order (BODY_25, left hand 21, right hand 21,
+    then face 70 where the model has face landmarks).
+    """
+
+    vertices: torch.Tensor
+    joints: torch.Tensor
+    keypoints: torch.Tensor
+
+
+def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula, (..., 3) -> (..., 3, 3); smooth at zero."""
+    angle_sq = (axis_angle * axis_angle).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
+    angle = torch.sqrt(angle_sq + 1e-12)
+    x, y, z = axis_angle.unbind(-1)
+    zero = torch.zeros_like(x)
+    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*axis_angle.shape[:-1], 3, 3)
+    small = angle_sq < 1e-8
+    # sin(a)/a and (1-cos(a))/a^2, with Taylor expansions near zero.
+    sin_term = torch.where(small, 1.0 - angle_sq / 6.0, torch.sin(angle) / angle)
+    cos_term = torch.where(small, 0.5 - angle_sq / 24.0, (1.0 - torch.cos(angle)) / (angle_sq + 1e-12))
+    eye = torch.eye(3, dtype=axis_angle.dtype, device=axis_angle.device).expand_as(skew)
+    return eye + sin_term * skew + cos_term * (skew @ skew)
+
+
+def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
+    """(..., 3, 3) rotation matrices -> (..., 3) axis-angle (via roma, numerically robust)."""
+    import roma
+
+    return roma.rotmat_to_rotvec(matrix)
+
+
+class BodyModel(torch.nn.Module):
+    """Base class of the backends: what every stage may rely on.
+
+    Attributes set by backends: `name`, `faces` (F, 3) long buffer,
+    `joint_names`, `body_joint_names`, `hand_joint_names`, `num_shape`,
+    `num_expression`, `keypoint_valid` (K,) bool (which OpenPose keypoints the
+    model really has), `contact_regions` (name -> vertex ids), `fitting_subsample`
+    (vertex ids), `up_axis` and `forward_axis` (model coordinates).
+    """
+
+    name: str = "base"
+
+    def init_params(self, batch_size: int = 1, device=None, dtype=None) -> BodyParams:
+        """Neutral shape, rest pose, identity orientation, zero translation."""
+        device = device or self.faces.device
+        dtype = dtype or self.dtype
+
+        def zeros(*shape):
+            return torch.zeros(batch_size, *shape, device=device, dtype=dtype)
+
+        return BodyParams(
+            shape=self.neutral_shape().to(device=device, dtype=dtype).expand(batch_size, -1).clone(),
+            global_orient=zeros(3),
+            transl=zeros(3),
+            body_pose=zeros(len(self.body_joint_names), 3),
+            left_hand_pose=zeros(len(self.hand_joint_names), 3),
+            right_hand_pose=zeros(len(self.hand_joint_names), 3),
+            expression=zeros(self.num_expression),
+        )
+
+    def neutral_shape(self) -> torch.Tensor:
+        return torch.zeros(1, self.num_shape)
+
+    @property
+    def num_vertices(self) -> int:
+        raise NotImplementedError
+
+    @property
+    def num_keypoints(self) -> int:
+        return int(self.keypoint_valid.shape[0])
+
+    def forward(self, params: BodyParams) -> BodyOutput:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @staticmethod
+    def to_world(points: torch.Tensor, params: BodyParams) -> torch.Tensor:
+        """Model coordinates (B, N, 3) -> world with global_orient and transl."""
+        rotation = axis_angle_to_matrix(params.global_orient)  # (B, 3, 3)
+        return points @ rotation.transpose(1, 2) + params.transl[:, None, :]
+
+    def set_pose(self, params: BodyParams, joint: str, axis_angle: torch.Tensor) -> None:
+        """Set one bone's local rotation in place, by the backend's bone name.
+
+        Hand bones are named with the backend's side suffix (anny: '.L'/'.R')."""
+        side, index = self.locate_joint(joint)
+        target = {"body": params.body_pose, "L": params.left_hand_pose, "R": params.right_hand_pose}[side]
+        target[:, index] = torch.as_tensor(axis_angle, dtype=target.dtype, device=target.device)
+
+    def locate_joint(self, joint: str) -> tuple[str, int]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+
+def replace(params: BodyParams, **changes) -> BodyParams:
+    return dataclasses.replace(params, **changes)

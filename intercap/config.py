@@ -1,0 +1,129 @@
+"""One configuration tree for the whole pipeline.
+
+Defaults live in the dataclasses below; a YAML file and ``section.key=value``
+overrides from the command line change them; every results folder gets the
+tree it was produced with (``OUT/config.yaml``).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+
+@dataclass
+class BodyModelConfig:
+    """Which body model, and where its files and caches are."""
+
+    name: str = "anny"  # "anny" (default, ships with its package) or "smplx"
+    cache_dir: str | None = None  # anny's cache folder; None: $ANNY_CACHE_DIR or ~/.cache/anny
+    smplx_model_dir: str | None = None  # folder holding SMPLX_NEUTRAL.npz etc.
+    dtype: str = "float32"
+
+
+@dataclass
+class PrepareConfig:
+    """Point clouds, ground plane and the calibration check."""
+
+    depth_min_m: float = 0.2
+    depth_max_m: float = 8.0
+    pixel_stride: int = 2  # back-project every n-th pixel for the fused clouds
+    voxel_size_m: float = 0.01  # fused-cloud downsampling
+    plane_distance_m: float = 0.015  # RANSAC inlier band for the ground plane
+    plane_iterations: int = 2000
+    ground_frames: int = 5  # frames (spread over the sequence) fused for the ground fit
+    calib_frames: int = 3  # frames (spread over the sequence) used for the ICP check
+    icp_max_distance_m: float = 0.05
+    calib_warn_mm: float = 10.0  # neighbour disagreement above this is flagged
+    calib_warn_deg: float = 1.0
+    save_clouds: bool = True  # write one fused .ply per checked frame for inspection
+    seed: int = 0
+
+
+@dataclass
+class RunConfig:
+    """What `intercap run` does."""
+
+    stages: list[str] = field(default_factory=lambda: ["prepare"])
+    device: str = "cpu"
+    force: bool = False  # recompute stages whose output is already saved
+
+
+@dataclass
+class Config:
+    body_model: BodyModelConfig = field(default_factory=BodyModelConfig)
+    prepare: PrepareConfig = field(default_factory=PrepareConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+
+
+class ConfigError(ValueError):
+    """A YAML file or override names a key that does not exist or has a bad value."""
+
+
+def _coerce(value: Any, current: Any, key: str) -> Any:
+    """Parse a command-line string into the type of the field it overrides."""
+    if not isinstance(value, str):
+        return value
+    parsed = yaml.safe_load(value)
+    if current is None or parsed is None:
+        return parsed
+    if isinstance(current, bool):
+        if not isinstance(parsed, bool):
+            raise ConfigError(f"{key}: expected true/false, got {value!r}")
+        return parsed
+    if isinstance(current, (int, float)) and not isinstance(parsed, (int, float)):
+        raise ConfigError(f"{key}: expected a number, got {value!r}")
+    if isinstance(current, float):
+        return float(parsed)
+    if isinstance(current, list) and isinstance(parsed, str):
+        return [p.strip() for p in parsed.split(",") if p.strip()]
+    return parsed
+
+
+def _apply(node: Any, updates: dict, prefix: str = "") -> None:
+    names = {f.name for f in dataclasses.fields(node)}
+    for key, value in updates.items():
+        path = f"{prefix}{key}"
+        if key not in names:
+            raise ConfigError(f"unknown config key {path!r}; known here: {sorted(names)}")
+        current = getattr(node, key)
+        if dataclasses.is_dataclass(current):
+            if not isinstance(value, dict):
+                raise ConfigError(f"{path} is a section; give it a mapping")
+            _apply(current, value, prefix=path + ".")
+        else:
+            setattr(node, key, _coerce(value, current, path))
+
+
+def load_config(yaml_path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    """Defaults, then the YAML file, then ``section.key=value`` overrides."""
+    cfg = Config()
+    if yaml_path is not None:
+        try:
+            data = yaml.safe_load(Path(yaml_path).read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise ConfigError(f"cannot read config {yaml_path}: {exc}") from exc
+        if not isinstance(data, dict):
+            raise ConfigError(f"{yaml_path}: top level must be a mapping")
+        _apply(cfg, data)
+    for item in overrides or []:
+        if "=" not in item:
+            raise ConfigError(f"override {item!r} is not of the form section.key=value")
+        dotted, value = item.split("=", 1)
+        *sections, leaf = dotted.strip().split(".")
+        nested: dict = {leaf: value}
+        for section in reversed(sections):
+            nested = {section: nested}
+        _apply(cfg, nested)
+    return cfg
+
+
+def config_to_dict(cfg: Config) -> dict:
+    return dataclasses.asdict(cfg)
+
+
+def save_config(cfg: Config, path: str | Path) -> None:
+    Path(path).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))

@@ -1,0 +1,189 @@
+"""Ground plane and calibration check on synthetic scenes with known truth."""
+import numpy as np
+import pytest
+
+from calib import check_calibration, format_agreement, neighbour_pairs
+from intercap.geometry import fit_ground_plane, fuse_points, up_hint_from_cameras
+
+FLOOR_NORMAL = np.array([0.1, -0.98, 0.15]) / np.linalg.norm([0.1, -0.98, 0.15])  # up, not a world axis
+FLOOR_POINT = np.array([0.3, 1.1, -0.4])
+
+
+def floor_basis(up):
+    e1 = np.cross(up, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)
+
+
+def room_scene(seed=0, n_floor=12000, n_wall=16000, n_person=3000, noise=0.003):
+    """A tilted floor, a wall with MORE points than the floor, and a person-like
+    cylinder (1.7 m tall) standing on the floor 1.7 m in front of the wall."""
+    rng = np.random.default_rng(seed)
+    up = FLOOR_NORMAL
+    e1, e2 = floor_basis(up)
+    ab = rng.uniform(-2.0, 2.0, size=(n_floor, 2))
+    floor = FLOOR_POINT + ab[:, :1] * e1 + ab[:, 1:] * e2
+    bh = rng.uniform([-2.0, 0.0], [2.0, 2.6], size=(n_wall, 2))
+    wall = FLOOR_POINT + 2.0 * e1 + bh[:, :1] * e2 + bh[:, 1:] * up
+    theta = rng.uniform(0, 2 * np.pi, n_person)
+    h = rng.uniform(0.0, 1.7, n_person)
+    r = 0.15 + 0.08 * np.sin(np.pi * h / 1.7)  # a little wider at the hips
+    base = FLOOR_POINT + 0.3 * e1 + 0.2 * e2
+    person = base + (r * np.cos(theta))[:, None] * e1 + (r * np.sin(theta))[:, None] * e2 + h[:, None] * up
+    floor = floor + rng.normal(0, noise, size=(n_floor, 1)) * up
+    wall = wall + rng.normal(0, noise, size=(n_wall, 1)) * e1
+    person = person + rng.normal(0, noise, size=person.shape)
+    return floor, wall, person
+
+
+def plane_errors(plane):
+    angle = np.degrees(np.arccos(np.clip(plane.normal @ FLOOR_NORMAL, -1, 1)))
+    offset = abs(plane.signed_distance(FLOOR_POINT[None])[0])
+    return angle, offset
+
+
+@pytest.mark.parametrize("use_person", [False, True])
+def test_ground_plane_picks_floor_under_person_not_larger_wall(use_person):
+    floor, wall, person = room_scene()
+    scene = np.concatenate([floor, wall, person])
+    plane = fit_ground_plane(scene, person_points=person if use_person else None)
+    angle, offset = plane_errors(plane)
+    print(f"ground (person_points={use_person}): {angle:.3f} deg, {offset * 1000:.2f} mm, "
+          f"inliers {plane.inlier_ratio:.3f}, rmse {plane.rmse_m * 1000:.2f} mm")
+    assert angle < 1.0, "normal is not the floor's (or points into the floor)"
+    assert offset < 0.01
+    assert np.isclose(np.linalg.norm(plane.normal), 1.0)
+    assert np.median(plane.signed_distance(person)) > 0.5  # the person is on the positive side
+    assert abs(plane.inlier_ratio - len(floor) / len(scene)) < 0.02
+    assert 0.002 < plane.rmse_m < 0.004  # the 3 mm noise
+
+
+def test_ground_plane_up_hint_and_determinism():
+    floor, wall, person = room_scene(seed=1)
+    scene = np.concatenate([floor, wall, person])
+    a = fit_ground_plane(scene, up_hint=FLOOR_NORMAL + [0.2, 0.0, -0.2], seed=3)
+    b = fit_ground_plane(scene, up_hint=FLOOR_NORMAL + [0.2, 0.0, -0.2], seed=3)
+    assert np.array_equal(a.normal, b.normal) and np.array_equal(a.point, b.point)
+    assert plane_errors(a)[0] < 1.0
+    # an up hint pointing along the wall's normal makes the floor ineligible; the wall is chosen
+    e1, _ = floor_basis(FLOOR_NORMAL)
+    w = fit_ground_plane(scene, up_hint=-e1)
+    assert abs(w.normal @ e1) > 0.99
+
+
+def test_up_hint_from_upright_cameras():
+    e1, e2 = floor_basis(FLOOR_NORMAL)
+    poses = []
+    for a in np.linspace(0, 2 * np.pi, 4, endpoint=False):
+        z = -(np.cos(a) * e1 + np.sin(a) * e2) - 0.3 * FLOOR_NORMAL  # looking in and slightly down
+        z /= np.linalg.norm(z)
+        y = -(FLOOR_NORMAL - (FLOOR_NORMAL @ z) * z)
+        y /= np.linalg.norm(y)
+        T = np.eye(4)
+        T[:3, :3] = np.stack([np.cross(y, z), y, z], 1)
+        poses.append(T)
+    assert np.degrees(np.arccos(up_hint_from_cameras(np.stack(poses)) @ FLOOR_NORMAL)) < 1e-6
+
+
+def test_fuse_points_concatenates_and_downsamples():
+    rng = np.random.default_rng(0)
+    views = [rng.uniform(0, 1, size=(5000, 3)), np.zeros((0, 3)), rng.uniform(0, 1, size=(5000, 3))]
+    assert fuse_points(views, 0).shape == (10000, 3)
+    fused = fuse_points(views, 0.1)
+    assert 1000 <= len(fused) <= 11**3  # one point per occupied 10 cm voxel (grid starts at the min corner)
+
+
+def box_surface(rng, center, size, yaw, n):
+    """n points on the 5 visible faces (no bottom) of a box standing on z=0."""
+    pts = rng.uniform(-0.5, 0.5, size=(n, 3)) * size
+    face = rng.integers(0, 5, n)
+    axis = np.array([0, 0, 1, 1, 2])[face]
+    sign = np.array([-1, 1, -1, 1, 1])[face]
+    pts[np.arange(n), axis] = sign * size[axis] / 2
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return pts @ R.T + center + [0, 0, size[2] / 2]
+
+
+def two_view_scene(seed=0, noise=0.001):
+    """A floor with four boxes, sampled twice independently; view a sees x < 0.5,
+    view b sees x > -0.5, so they overlap in a 1 m band holding two boxes."""
+    rng = np.random.default_rng(seed)
+    boxes = [([-0.2, 0.3, 0], [0.5, 0.4, 0.6], 0.3), ([0.25, -0.4, 0], [0.4, 0.6, 0.4], -0.5),
+             ([-1.0, -0.2, 0], [0.5, 0.5, 0.5], 0.1), ([1.0, 0.5, 0], [0.6, 0.4, 0.8], 0.8)]
+
+    def sample():
+        floor = np.column_stack([rng.uniform(-1.6, 1.6, 60000), rng.uniform(-1.2, 1.2, 60000), np.zeros(60000)])
+        parts = [floor] + [box_surface(rng, np.array(c), np.array(s), y, 15000) for c, s, y in boxes]
+        pts = np.concatenate(parts)
+        return pts + rng.normal(0, noise, pts.shape)
+
+    a, b = sample(), sample()
+    return a[a[:, 0] < 0.5], b[b[:, 0] > -0.5]
+
+
+def rotation(axis, deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    t = np.radians(deg)
+    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+
+
+def test_check_calibration_aligned_and_drifted():
+    a, b = two_view_scene()
+    centers = np.array([[-2.0, 0.0, 1.5], [2.0, 0.0, 1.5]])
+    good = check_calibration([a, b], ["left", "right"], centers)
+    assert len(good) == 1 and (good[0].cam_a, good[0].cam_b) == ("left", "right")
+    g = good[0]
+    print(f"aligned: correction {g.correction_rotation_deg:.3f} deg {g.correction_translation_mm:.2f} mm, "
+          f"median {g.median_distance_mm:.2f} mm, icp rmse {g.icp_rmse_mm:.2f} mm, overlap {g.overlap_points}")
+    assert g.correction_translation_mm < 2.0 and g.correction_rotation_deg < 0.2
+    assert g.overlap_points > 5000 and g.median_distance_mm < 1.5
+
+    # drift view a by 1.5 deg about its overlap centre plus 20 mm
+    centre = a[np.abs(a[:, 0]) < 0.5].mean(axis=0)
+    R = rotation([0.3, 0.5, 0.8], 1.5)
+    t = 0.020 * np.array([1.0, -1.0, 0.5]) / np.linalg.norm([1.0, -1.0, 0.5])
+    drifted = (a - centre) @ R.T + centre + t
+    bad = check_calibration([drifted, b], ["left", "right"], centers)[0]
+    print(f"drifted 20 mm / 1.5 deg: correction {bad.correction_rotation_deg:.3f} deg "
+          f"{bad.correction_translation_mm:.2f} mm, median {bad.median_distance_mm:.2f} mm, "
+          f"icp rmse {bad.icp_rmse_mm:.2f} mm")
+    assert abs(bad.correction_translation_mm - 20.0) < 3.0
+    assert abs(bad.correction_rotation_deg - 1.5) < 0.3
+    # the correction undoes the drift: applied to the drifted cloud it restores the original
+    fixed = drifted @ bad.correction[:3, :3].T + bad.correction[:3, 3]
+    assert np.abs(fixed - a).max() < 0.005
+    table = format_agreement(good + [bad], warn_mm=10.0)
+    print(table)
+    lines = table.splitlines()
+    assert lines[2].endswith("ok") and lines[3].endswith("CHECK CALIBRATION")
+
+
+def test_check_calibration_reports_views_without_overlap():
+    a, b = two_view_scene()
+    far = b + [10.0, 0, 0]
+    res = check_calibration([a, far], ["a", "b"], np.array([[0, 0, 0], [1.0, 0, 0]]))[0]
+    assert res.overlap_points == 0 and np.isnan(res.median_distance_mm)
+    assert "NO OVERLAP" in format_agreement([res])
+
+
+def ring_centers(angles_deg, radius=3.0):
+    """Camera centres on a tilted circle (the rig plane is not a world plane)."""
+    e1, e2 = floor_basis(FLOOR_NORMAL)
+    a = np.radians(angles_deg)
+    return FLOOR_POINT + 1.5 * FLOOR_NORMAL + radius * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+
+
+def test_neighbour_pairs_ring_arc_and_pair():
+    # camera indices do not follow ring order: positions at 0, 180, 90, 270 degrees
+    pairs = neighbour_pairs(ring_centers([0, 180, 90, 270]))
+    assert {frozenset(p) for p in pairs} == {frozenset(p) for p in [(0, 2), (2, 1), (1, 3), (3, 0)]}
+    assert len(pairs) == 4
+    for (a0, b0), (a1, _) in zip(pairs, pairs[1:] + pairs[:1]):
+        assert b0 == a1  # ring order
+    # six cameras in a 150 degree arc in front: a chain, no pair across the empty back
+    arc = neighbour_pairs(ring_centers([60, 0, 30, 120, 150, 90]))
+    assert {frozenset(p) for p in arc} == {frozenset(p) for p in [(1, 2), (2, 0), (0, 5), (5, 3), (3, 4)]}
+    assert neighbour_pairs(ring_centers([0, 90])) == [(0, 1)]
+    assert neighbour_pairs(ring_centers([0])) == []

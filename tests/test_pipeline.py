@@ -1,0 +1,94 @@
+"""Runner and prepare stage on the committed sample session."""
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from intercap.cli import main
+from intercap.config import ConfigError, load_config
+from intercap.pipeline import StageError, run_pipeline
+
+SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "sample"
+
+
+def angle_deg(a, b):
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    return np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1)))
+
+
+@pytest.fixture(scope="module")
+def prepared(tmp_path_factory):
+    out = tmp_path_factory.mktemp("out")
+    cfg = load_config(overrides=["prepare.calib_frames=2", "prepare.ground_frames=3"])
+    metrics = run_pipeline(SAMPLE, out, cfg, progress=False)
+    return out, cfg, metrics
+
+
+def test_ground_plane_on_sample_matches_truth(prepared):
+    out, _, metrics = prepared
+    ground = json.loads((out / "prepare" / "ground.json").read_text())
+    truth = json.loads((SAMPLE / "ground_truth" / "ground.json").read_text())
+    assert ground["source"] == "ransac"
+    assert angle_deg(ground["normal"], truth["normal"]) < 1.0  # also checks the up side
+    offset = (np.array(ground["point"]) - np.array(truth["point"])) @ np.array(truth["normal"])
+    assert abs(offset) < 0.01
+
+
+def test_calibration_check_on_exact_calibration_is_small(prepared):
+    out, _, _ = prepared
+    check = json.loads((out / "prepare" / "calibration_check.json").read_text())
+    assert len(check["pairs"]) >= 4  # a 4-camera ring: each camera with its neighbours
+    for pair in check["pairs"]:
+        if pair["overlap_points"] > 200:
+            assert pair["correction_translation_mm"] < 10, pair
+    assert not check["flagged"]
+
+
+def test_outputs_config_and_metrics_written(prepared):
+    out, _, metrics = prepared
+    assert (out / "config.yaml").exists()
+    assert set(metrics) == {"prepare"}
+    saved = json.loads((out / "metrics.json").read_text())
+    assert saved["prepare"]["ground_source"] == "ransac"
+    assert list((out / "prepare" / "clouds").glob("*.ply"))
+
+
+def test_resume_skips_done_stage_and_redoes_changed_one(prepared):
+    out, cfg, _ = prepared
+    marker = out / "prepare" / "DONE.json"
+    before = marker.read_text()
+    run_pipeline(SAMPLE, out, cfg, progress=False)
+    assert marker.read_text() == before  # skipped: the marker (with its finish time) is untouched
+    changed = load_config(overrides=["prepare.calib_frames=1", "prepare.ground_frames=3"])
+    run_pipeline(SAMPLE, out, changed, progress=False)
+    assert json.loads(marker.read_text())["fingerprint"] != json.loads(before)["fingerprint"]
+
+
+def test_unbuilt_or_unknown_stage_is_an_error_not_a_fake(tmp_path):
+    with pytest.raises(StageError, match="not implemented yet"):
+        run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=global"]), progress=False)
+    with pytest.raises(StageError, match="unknown stage"):
+        run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=dance"]), progress=False)
+    assert not (tmp_path / "global").exists()
+
+
+def test_config_overrides_and_errors(tmp_path):
+    cfg = load_config(overrides=["prepare.voxel_size_m=0.02", "run.stages=prepare"])
+    assert cfg.prepare.voxel_size_m == 0.02 and cfg.run.stages == ["prepare"]
+    with pytest.raises(ConfigError, match="unknown config key 'prepare.voxel'"):
+        load_config(overrides=["prepare.voxel=1"])
+    with pytest.raises(ConfigError, match="expected a number"):
+        load_config(overrides=["prepare.voxel_size_m=big"])
+    yaml_file = tmp_path / "c.yaml"
+    yaml_file.write_text("prepare:\n  pixel_stride: 4\n")
+    assert load_config(yaml_file).prepare.pixel_stride == 4
+
+
+def test_cli_validate_and_run_errors(tmp_path, capsys):
+    assert main(["validate", str(SAMPLE)]) == 0
+    assert "cam" in capsys.readouterr().out
+    assert main(["validate", str(tmp_path)]) == 1
+    assert "session.yaml" in capsys.readouterr().out
+    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "body"]) == 2
+    assert "not implemented yet" in capsys.readouterr().err

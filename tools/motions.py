@@ -1,0 +1,690 @@
+"""Scripted human-object interactions for synthetic sessions.
+
+A `Script` is data: named phases (seconds), eased keyframes for the body's
+posture, heading, gait, hand targets and finger closure, and the object's
+anchors. `animate` turns a script into per-frame body parameters, world-space
+vertices and keypoints, object poses and contact labels:
+
+1. keyframes -> per-frame bone rotations (quaternion slerp with smoothstep
+   easing) plus a phase-driven walk cycle (legs swing, knees flex in swing,
+   arms counter-swing);
+2. the root follows the stance foot (no foot skating) and is lifted so the
+   lowest vertex touches the floor z = 0;
+3. the object's track is planned from its anchors (fixed in the world or
+   carried in the person's heading frame);
+4. a few L-BFGS steps of the body model bend the arms (and a little the spine)
+   so each palm lies on its grasp point with the palm facing the surface;
+5. fingers close until they touch the object (per finger, by testing curl
+   amounts against the object's signed distance).
+
+The bone names and axes are anny's (local-ref parameterisation, axes aligned
+with the model axes at rest; the person faces -y with left on +x):
+x flexes the spine forward (+), swings the thigh back (+) / forward (-) and
+bends the knee (+); for the arms x swings the arm back (+) / forward (-).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial.transform import Rotation, Slerp
+
+from tools.objects import ObjectSpec, SurfaceDistance
+
+SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair")
+
+# Bones the IK may move, with the weight of their pull back to the scripted pose.
+IK_BONES = {
+    "spine03": 40.0, "spine02": 40.0, "spine01": 40.0,
+    "clavicle.L": 10.0, "clavicle.R": 10.0,
+    "upperarm01.L": 0.5, "upperarm01.R": 0.5, "upperarm02.L": 2.0, "upperarm02.R": 2.0,
+    "lowerarm01.L": 0.5, "lowerarm01.R": 0.5, "lowerarm02.L": 1.0, "lowerarm02.R": 1.0,
+    "wrist.L": 1.0, "wrist.R": 1.0,
+}
+SIDES = {"left": "L", "right": "R"}
+HAND_OFFSET = {"L": 25, "R": 46}  # first keypoint of each hand in the 67-keypoint layout
+FINGER_BONE_PREFIX = ["finger1", "finger2", "finger3", "finger4", "finger5"]  # thumb .. little
+
+
+# ----------------------------------------------------------------------------- scripts
+@dataclass
+class ObjectKey:
+    """The object's pose at time `t`: `rel` (4x4) in the person's heading frame,
+    taken at time `t` when `frame == 'body'` (carried) or at time `ref` when
+    `frame == 'world'` (resting where it was put)."""
+
+    t: float
+    frame: str
+    rel: np.ndarray
+    ref: float = 0.0
+
+
+@dataclass
+class Script:
+    """A scripted interaction: phases and eased keyframes, times in seconds.
+
+    pose_keys: (t, {bone: axis-angle}) posture, unnamed bones at rest;
+    pitch_keys: (t, rad) forward tilt of the pelvis; yaw_keys: (t, rad) heading
+    change (left turn +); walk_keys: (t, signed gait intensity, + forward);
+    reach_keys: (t, weight of the grasp targets in the IK); gap_keys: (t, metres
+    the palms stay off the surface along its normal, approach/withdraw);
+    close_keys: (t, finger closure 0 relaxed .. 1 touching); contact: phases
+    during which the hands touch the object; props: static scene meshes (name,
+    kind, rel pose in the heading frame at time 0)."""
+
+    name: str
+    duration: float
+    phases: dict
+    default_object: str
+    hands: tuple
+    pose_keys: list
+    pitch_keys: list
+    yaw_keys: list
+    walk_keys: list
+    reach_keys: list
+    gap_keys: list
+    close_keys: list
+    object_keys: list
+    contact: tuple
+    props: list = field(default_factory=list)
+
+
+def _pose(t=0.0, z=0.0, y=0.0):
+    """A 4x4 translation in the heading frame (x right, y forward, z up)."""
+    T = np.eye(4)
+    T[:3, 3] = (t, y, z)
+    return T
+
+
+def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+# Postures (anny bone -> axis-angle), mirrored for the two sides where it matters.
+ARMS_RELAXED = {"upperarm01.L": (0.0, -0.05, 0.0), "upperarm01.R": (0.0, 0.05, 0.0),
+                "lowerarm01.L": (-0.15, 0.0, 0.0), "lowerarm01.R": (-0.15, 0.0, 0.0)}
+
+
+def _stoop(depth: float, arms_forward: float = 1.0) -> dict:
+    """Bend down to reach low: knees and hips flex, spine rounds, arms go forward."""
+    d = depth
+    pose = {
+        "upperleg01.L": (-1.05 * d, 0.0, 0.0), "upperleg01.R": (-1.05 * d, 0.0, 0.0),
+        "lowerleg01.L": (1.25 * d, 0.0, 0.0), "lowerleg01.R": (1.25 * d, 0.0, 0.0),
+        "foot.L": (-0.45 * d, 0.0, 0.0), "foot.R": (-0.45 * d, 0.0, 0.0),
+        "spine04": (0.18 * d, 0.0, 0.0), "spine03": (0.18 * d, 0.0, 0.0), "spine02": (0.12 * d, 0.0, 0.0),
+        "neck01": (-0.25 * d, 0.0, 0.0), "head": (-0.2 * d, 0.0, 0.0),
+        "upperarm01.L": (-0.7 * arms_forward, 0.15, 0.0), "upperarm01.R": (-0.7 * arms_forward, -0.15, 0.0),
+        "lowerarm01.L": (-0.3, 0.0, 0.0), "lowerarm01.R": (-0.3, 0.0, 0.0),
+    }
+    return pose
+
+
+def _hold(elbow: float = 1.2, forward: float = 0.5) -> dict:
+    """Upright, forearms raised in front of the body (carrying or pushing)."""
+    return {
+        "upperarm01.L": (-forward, 0.15, 0.0), "upperarm01.R": (-forward, -0.15, 0.0),
+        "lowerarm01.L": (-elbow, 0.0, 0.0), "lowerarm01.R": (-elbow, 0.0, 0.0),
+    }
+
+
+def pick_place() -> Script:
+    """Walk to a box on the floor, bend, grasp it with both hands, lift, carry
+    while turning left, put it down, let go and step back."""
+    phases = {
+        "approach": (0.0, 1.8), "reach": (1.8, 2.7), "grasp": (2.7, 3.0), "lift": (3.0, 3.8),
+        "carry_turn": (3.8, 5.0), "put_down": (5.0, 5.8), "release": (5.8, 6.1), "step_back": (6.1, 7.2),
+    }
+    stoop = _stoop(1.0)
+    carry = _hold(elbow=1.3, forward=0.35)
+    pose_keys = [(0.0, ARMS_RELAXED), (1.8, ARMS_RELAXED), (2.7, stoop), (3.0, stoop), (3.8, carry),
+                 (5.0, carry), (5.8, stoop), (6.1, stoop), (6.9, ARMS_RELAXED)]
+    pitch_keys = [(0.0, 0.0), (1.8, 0.0), (2.7, 0.55), (3.0, 0.55), (3.8, 0.05), (5.0, 0.05), (5.8, 0.55),
+                  (6.1, 0.55), (6.9, 0.0)]
+    yaw_keys = [(0.0, 0.0), (3.9, 0.0), (4.9, np.pi / 2)]
+    walk_keys = [(0.0, 0.0), (0.3, 1.0), (1.3, 1.0), (1.8, 0.0), (3.8, 0.0), (4.0, 0.45), (4.7, 0.45),
+                 (5.0, 0.0), (6.3, 0.0), (6.5, -0.55), (7.0, -0.55), (7.2, 0.0)]
+    reach_keys = [(0.0, 0.0), (2.0, 0.0), (2.6, 1.0), (6.1, 1.0), (6.6, 0.0)]
+    gap_keys = [(0.0, 0.12), (2.0, 0.12), (2.7, 0.0), (5.8, 0.0), (6.3, 0.12)]
+    close_keys = [(0.0, 0.0), (2.7, 0.0), (3.0, 1.0), (5.8, 1.0), (6.0, 0.0)]
+    floor = _rel(0.0, 0.47, 0.075)  # box centre: 0.47 m ahead, lying on the floor
+    carry_rel = _rel(0.0, 0.42, 1.0)
+    object_keys = [
+        ObjectKey(0.0, "world", floor, ref=2.7), ObjectKey(3.0, "world", floor, ref=2.7),
+        ObjectKey(3.8, "body", carry_rel), ObjectKey(5.0, "body", carry_rel),
+        ObjectKey(5.8, "world", floor, ref=5.8), ObjectKey(7.2, "world", floor, ref=5.8),
+    ]
+    return Script("pick_place", 7.2, phases, "box", ("left", "right"), pose_keys, pitch_keys, yaw_keys,
+                  walk_keys, reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "put_down"))
+
+
+def lift_drink() -> Script:
+    """Stand at a table, pick up a cup with the right hand, drink, put it back."""
+    phases = {"stand": (0.0, 0.6), "reach": (0.6, 1.5), "grasp": (1.5, 1.8), "lift": (1.8, 2.7),
+              "drink": (2.7, 3.7), "lower": (3.7, 4.6), "release": (4.6, 4.9), "retract": (4.9, 5.8)}
+    relaxed = ARMS_RELAXED
+    reach = dict(ARMS_RELAXED, **{"upperarm01.R": (-0.6, 0.1, 0.0), "lowerarm01.R": (-0.6, 0.0, 0.0),
+                                  "spine03": (0.08, 0.0, 0.0)})
+    drink = dict(ARMS_RELAXED, **{"upperarm01.R": (-0.6, 0.3, 0.0), "lowerarm01.R": (-2.0, 0.0, 0.0),
+                                  "head": (0.12, 0.0, 0.0), "neck01": (-0.15, 0.0, 0.0)})
+    drink_tilt = dict(drink, **{"head": (-0.12, 0.0, 0.0), "neck01": (-0.25, 0.0, 0.0)})
+    pose_keys = [(0.0, relaxed), (0.6, relaxed), (1.5, reach), (1.8, reach), (2.7, drink), (3.0, drink_tilt),
+                 (3.4, drink_tilt), (3.7, drink), (4.6, reach), (4.9, reach), (5.8, relaxed)]
+    pitch_keys = [(0.0, 0.0), (0.6, 0.0), (1.5, 0.12), (1.8, 0.12), (2.7, 0.0), (3.7, 0.0), (4.6, 0.12),
+                  (4.9, 0.12), (5.8, 0.0)]
+    yaw_keys = [(0.0, 0.0)]
+    walk_keys = [(0.0, 0.0)]
+    reach_keys = [(0.0, 0.0), (0.8, 0.0), (1.4, 1.0), (4.9, 1.0), (5.4, 0.0)]
+    gap_keys = [(0.0, 0.10), (0.8, 0.10), (1.5, 0.0), (4.6, 0.0), (5.1, 0.10)]
+    close_keys = [(0.0, 0.0), (1.5, 0.0), (1.8, 1.0), (4.6, 1.0), (4.8, 0.0)]
+    table_h = 0.74
+    on_table = _rel(0.12, 0.42, table_h + 0.05)
+    at_mouth = _rel(0.05, 0.16, 1.43, rotvec=(0.0, 0.0, 0.3))
+    tilted = _rel(0.04, 0.14, 1.45, rotvec=(-0.7, 0.0, 0.3))
+    object_keys = [
+        ObjectKey(0.0, "world", on_table, ref=0.0), ObjectKey(1.8, "world", on_table, ref=0.0),
+        ObjectKey(2.7, "body", at_mouth), ObjectKey(3.0, "body", tilted), ObjectKey(3.4, "body", tilted),
+        ObjectKey(3.7, "body", at_mouth), ObjectKey(4.6, "world", on_table, ref=0.0),
+        ObjectKey(5.8, "world", on_table, ref=0.0),
+    ]
+    props = [("table", "table", _rel(0.05, 0.55, table_h / 2))]
+    return Script("lift_drink", 5.8, phases, "cup", ("right",), pose_keys, pitch_keys, yaw_keys, walk_keys,
+                  reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "lower"), props=props)
+
+
+def push_chair() -> Script:
+    """Step behind a chair, put both hands on its back, push it forward while
+    walking, let go and step back."""
+    phases = {"stand": (0.0, 0.4), "reach": (0.4, 1.2), "grasp": (1.2, 1.5), "push": (1.5, 3.9),
+              "release": (3.9, 4.2), "step_back": (4.2, 5.4)}
+    lean = dict(_hold(elbow=0.5, forward=0.6), **{"spine03": (0.1, 0.0, 0.0), "spine02": (0.05, 0.0, 0.0)})
+    pose_keys = [(0.0, ARMS_RELAXED), (0.4, ARMS_RELAXED), (1.2, lean), (4.2, lean), (5.0, ARMS_RELAXED)]
+    pitch_keys = [(0.0, 0.0), (0.4, 0.0), (1.2, 0.15), (4.2, 0.15), (5.0, 0.0)]
+    yaw_keys = [(0.0, 0.0), (2.2, 0.0), (3.4, 0.35)]
+    walk_keys = [(0.0, 0.0), (1.5, 0.0), (1.9, 0.7), (3.5, 0.7), (3.9, 0.0), (4.3, 0.0), (4.5, -0.55),
+                 (5.1, -0.55), (5.4, 0.0)]
+    reach_keys = [(0.0, 0.0), (0.5, 0.0), (1.1, 1.0), (4.2, 1.0), (4.7, 0.0)]
+    gap_keys = [(0.0, 0.10), (0.5, 0.10), (1.2, 0.0), (3.9, 0.0), (4.4, 0.10)]
+    close_keys = [(0.0, 0.0), (1.2, 0.0), (1.5, 1.0), (3.9, 1.0), (4.1, 0.0)]
+    behind = _rel(0.0, 0.62, 0.425)
+    object_keys = [ObjectKey(0.0, "world", behind, ref=1.5), ObjectKey(1.5, "world", behind, ref=1.5),
+                   ObjectKey(1.50001, "body", behind), ObjectKey(3.9, "body", behind),
+                   ObjectKey(3.90001, "world", behind, ref=3.9), ObjectKey(5.4, "world", behind, ref=3.9)]
+    return Script("push_chair", 5.4, phases, "chair", ("left", "right"), pose_keys, pitch_keys, yaw_keys,
+                  walk_keys, reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "push"))
+
+
+def get_script(name: str) -> Script:
+    scripts = {"pick_place": pick_place, "lift_drink": lift_drink, "push_chair": push_chair}
+    if name not in scripts:
+        raise ValueError(f"unknown script {name!r}; choose one of {SCRIPT_NAMES}")
+    return scripts[name]()
+
+
+def contact_interval(script: Script) -> tuple[float, float]:
+    """Seconds during which the hands touch the object: start of the first
+    contact phase to the end of the last."""
+    return script.phases[script.contact[0]][0], script.phases[script.contact[1]][1]
+
+
+def prop_meshes(script: Script) -> list[tuple[str, trimesh.Trimesh, np.ndarray]]:
+    """Static scene meshes of the script (name, mesh, rel pose in the heading frame at time 0)."""
+    out = []
+    for name, kind, rel in script.props:
+        if kind == "table":
+            parts = []
+            top = trimesh.creation.box(extents=(0.8, 0.6, 0.04))
+            top.apply_translation((0, 0, 0.37 - 0.02))
+            parts.append(top)
+            for sx in (-1, 1):
+                for sy in (-1, 1):
+                    leg = trimesh.creation.box(extents=(0.05, 0.05, 0.70 - 0.001))
+                    leg.apply_translation((sx * 0.35, sy * 0.25, -0.37 + 0.35 - 0.0005))
+                    parts.append(leg)
+            out.append((name, trimesh.util.concatenate(parts), rel))
+    return out
+
+
+# ----------------------------------------------------------------------------- interpolation
+def smoothstep(s: np.ndarray) -> np.ndarray:
+    s = np.clip(s, 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s)
+
+
+def eased_segments(key_times: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each time, the index of the key before it and the eased weight of the next key."""
+    idx = np.clip(np.searchsorted(key_times, times, side="right") - 1, 0, len(key_times) - 1)
+    nxt = np.minimum(idx + 1, len(key_times) - 1)
+    span = np.maximum(key_times[nxt] - key_times[idx], 1e-9)
+    weight = np.where(nxt > idx, smoothstep((times - key_times[idx]) / span), 0.0)
+    return idx, weight
+
+
+def eased_scalar(keys: list, times: np.ndarray) -> np.ndarray:
+    """(T,) smoothstep-eased interpolation of (t, value) keys; constant outside."""
+    kt = np.array([k[0] for k in keys], float)
+    kv = np.array([k[1] for k in keys], float)
+    idx, w = eased_segments(kt, times)
+    return kv[idx] * (1 - w) + kv[np.minimum(idx + 1, len(kv) - 1)] * w
+
+
+def eased_rotations(key_times: np.ndarray, key_rotvecs: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(T, J, 3) axis-angles slerped between (K, J, 3) keys with smoothstep easing."""
+    idx, w = eased_segments(key_times, times)
+    nxt = np.minimum(idx + 1, len(key_times) - 1)
+    K, J, _ = key_rotvecs.shape
+    out = np.zeros((len(times), J, 3))
+    for j in range(J):
+        qa = Rotation.from_rotvec(key_rotvecs[idx, j])
+        qb = Rotation.from_rotvec(key_rotvecs[nxt, j])
+        delta = (qa.inv() * qb).as_rotvec()  # shortest arc from a to b
+        out[:, j] = (qa * Rotation.from_rotvec(delta * w[:, None])).as_rotvec()
+    return out
+
+
+def interpolate_poses(T0: np.ndarray, T1: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) poses between (T, 4, 4) T0 and T1: lerp translation, slerp rotation."""
+    r0 = Rotation.from_matrix(T0[:, :3, :3])
+    r1 = Rotation.from_matrix(T1[:, :3, :3])
+    out = np.tile(np.eye(4), (len(w), 1, 1))
+    out[:, :3, :3] = (r0 * Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * w[:, None])).as_matrix()
+    out[:, :3, 3] = T0[:, :3, 3] * (1 - w[:, None]) + T1[:, :3, 3] * w[:, None]
+    return out
+
+
+# ----------------------------------------------------------------------------- body timeline
+def posture_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray) -> np.ndarray:
+    """(T, Jb, 3) scripted posture from the pose keys."""
+    index = {n: i for i, n in enumerate(body_joint_names)}
+    keys = np.zeros((len(script.pose_keys), len(body_joint_names), 3))
+    for k, (_, pose) in enumerate(script.pose_keys):
+        for bone, rv in pose.items():
+            if bone not in index:
+                raise KeyError(f"script {script.name}: unknown bone {bone!r}")
+            keys[k, index[bone]] = rv
+    key_times = np.array([k[0] for k in script.pose_keys], float)
+    return eased_rotations(key_times, keys, times)
+
+
+def gait_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray, cadence_hz: float = 0.9):
+    """(T, Jb, 3) walk-cycle rotations to compose with the posture.
+
+    The gait phase advances with the signed intensity (backwards when negative),
+    the amplitude follows its magnitude: thighs swing +-0.38 rad, the knee flexes
+    in swing, the ankle lifts the toes, arms counter-swing, the pelvis rotates."""
+    intensity = eased_scalar(script.walk_keys, times)  # (T,)
+    dt = np.diff(times, prepend=times[0])
+    phase = 2 * np.pi * cadence_hz * np.cumsum(intensity * dt)
+    amp = np.abs(intensity)
+    index = {n: i for i, n in enumerate(body_joint_names)}
+    out = np.zeros((len(times), len(body_joint_names), 3))
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        s = np.sin(phase) * sign  # > 0: this thigh is forward
+        c = np.cos(phase) * sign  # > 0: this leg swings forward (swing phase) when walking forward
+        swing = np.maximum(0.0, c)  # swing phase (forwards and backwards walking alike)
+        out[:, index[f"upperleg01.{side}"], 0] = -0.38 * amp * s
+        out[:, index[f"lowerleg01.{side}"], 0] = amp * (0.08 + 0.85 * swing**1.5)
+        out[:, index[f"foot.{side}"], 0] = -amp * 0.25 * swing
+        out[:, index[f"upperarm01.{side}"], 0] = 0.3 * amp * s
+        out[:, index[f"lowerarm01.{side}"], 0] = -0.15 * amp
+    out[:, index["spine04"], 2] = 0.06 * amp * np.sin(phase)
+    return out
+
+
+def compose_rotvecs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-element rotation a then b (R_a @ R_b) as axis-angles, (..., 3)."""
+    shape = a.shape
+    r = Rotation.from_rotvec(a.reshape(-1, 3)) * Rotation.from_rotvec(b.reshape(-1, 3))
+    return r.as_rotvec().reshape(shape)
+
+
+def heading_frames(yaw: np.ndarray, root_xy: np.ndarray, heading0: float) -> np.ndarray:
+    """(T, 4, 4) person heading frames: x right, y forward, z up, origin under the root on the floor."""
+    psi = heading0 + yaw
+    out = np.tile(np.eye(4), (len(yaw), 1, 1))
+    out[:, :3, :3] = Rotation.from_euler("z", (psi - np.pi / 2)[:, None]).as_matrix()
+    out[:, :2, 3] = root_xy
+    return out
+
+
+def model_to_heading(model) -> np.ndarray:
+    """(3, 3) rotation from model coordinates to the heading frame (right, forward, up)."""
+    fwd = np.asarray(model.forward_axis, float)
+    up = np.asarray(model.up_axis, float)
+    return np.stack([np.cross(fwd, up), fwd, up])
+
+
+def body_orientation(model, heading: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) global body rotation: heading frame, then a forward pitch of the pelvis."""
+    up = np.asarray(model.up_axis, float)
+    fwd = np.asarray(model.forward_axis, float)
+    axis = np.cross(up, fwd)
+    R_pitch = Rotation.from_rotvec(pitch[:, None] * axis[None]).as_matrix()  # (T, 3, 3)
+    return heading[:, :3, :3] @ model_to_heading(model)[None] @ R_pitch
+
+
+def stance_anchored_root(feet_l: np.ndarray, feet_r: np.ndarray) -> np.ndarray:
+    """(T, 2) root xy that keeps the supporting foot still.
+
+    feet_l/r (T, 3): sole centres relative to the root, in world orientation.
+    The lower foot carries the weight (soft switch over ~1 cm); the root moves
+    opposite to that foot's motion relative to the root."""
+    w_l = 1.0 / (1.0 + np.exp(np.clip((feet_l[:, 2] - feet_r[:, 2]) / 0.004, -50, 50)))  # (T,)
+    d_l = np.diff(feet_l[:, :2], axis=0)
+    d_r = np.diff(feet_r[:, :2], axis=0)
+    w = 0.5 * (w_l[1:] + w_l[:-1])[:, None]
+    step = -(w * d_l + (1 - w) * d_r)
+    return np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
+
+
+def object_track(script: Script, heading: np.ndarray, times: np.ndarray, scale: float = 1.0) -> np.ndarray:
+    """(T, 4, 4) object -> world poses from the script's object keys.
+
+    Carried poses (frame 'body') are scaled with the person's stature
+    (`scale` = stature / 1.625 m, anny's neutral adult)."""
+    keys = script.object_keys
+    key_times = np.array([k.t for k in keys])
+
+    def anchor(key: ObjectKey) -> np.ndarray:  # (T, 4, 4) world pose of one key at every frame
+        if key.frame == "body":
+            rel = key.rel.copy()
+            rel[:3, 3] *= scale
+            return heading @ rel
+        ref = int(np.argmin(np.abs(times - key.ref)))
+        return np.broadcast_to(heading[ref] @ key.rel, (len(times), 4, 4)).copy()
+
+    anchors = [anchor(k) for k in keys]
+    idx, w = eased_segments(key_times, times)
+    out = np.empty((len(times), 4, 4))
+    for k in range(len(keys)):
+        sel = idx == k
+        if not sel.any():
+            continue
+        nxt = min(k + 1, len(keys) - 1)
+        out[sel] = interpolate_poses(anchors[k][sel], anchors[nxt][sel], w[sel])
+    return out
+
+
+# ----------------------------------------------------------------------------- hands
+def palm_frames(keypoints: torch.Tensor, vertices: torch.Tensor, palm_ids: dict, side: str):
+    """Palm centre (B, 3), outward palm normal (B, 3), finger direction (B, 3) of one hand.
+
+    The centre is the mean of a patch of palm-skin vertices; the directions come
+    from the wrist and the index and little knuckles (rigid with the palm)."""
+    o = HAND_OFFSET[side]
+    wrist, index1, little1 = keypoints[:, o], keypoints[:, o + 5], keypoints[:, o + 17]
+    d = (index1 + little1) / 2 - wrist
+    lateral = index1 - little1
+    n = torch.linalg.cross(lateral, d) if side == "R" else torch.linalg.cross(d, lateral)
+    n = n / n.norm(dim=-1, keepdim=True)
+    d = d / d.norm(dim=-1, keepdim=True)
+    centre = vertices[:, palm_ids[side]].mean(1)
+    return centre, n, d
+
+
+def palm_vertex_ids(model, rest_keypoints: np.ndarray, rest_vertices: np.ndarray, radius: float = 0.03) -> dict:
+    """Per side, palm-skin vertex ids: hand contact-region vertices near the palm centre."""
+    out = {}
+    for side, region in (("L", "left_hand"), ("R", "right_hand")):
+        o = HAND_OFFSET[side]
+        wrist, index1, little1 = rest_keypoints[o], rest_keypoints[o + 5], rest_keypoints[o + 17]
+        centre = wrist + 0.55 * ((index1 + little1) / 2 - wrist)
+        ids = model.contact_regions[region].cpu().numpy()
+        near = np.linalg.norm(rest_vertices[ids] - centre, axis=1) < radius
+        out[side] = torch.as_tensor(ids[near])
+    return out
+
+
+def grasp_targets(script: Script, spec: ObjectSpec, obj_poses: np.ndarray, gap: np.ndarray) -> dict:
+    """Per hand side: target palm centre (T, 3), palm normal (T, 3), finger direction (T, 3), world.
+
+    The palm centre sits `gap` metres (plus 4 mm of skin clearance) out along
+    the surface normal; the palm faces the surface."""
+    out = {}
+    for hand in script.hands:
+        g = spec.grasps[hand]
+        R, t = obj_poses[:, :3, :3], obj_poses[:, :3, 3]
+        normal = R @ np.asarray(g.normal, float)
+        point = (R @ np.asarray(g.point, float)) + t + normal * (0.004 + gap[:, None])
+        out[SIDES[hand]] = (point, -normal, R @ np.asarray(g.finger_dir, float))
+    return out
+
+
+def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, palm_ids: dict, iters: int = 40):
+    """Bend spine and arms so the palms meet their targets, frames where `weight` > 0.
+
+    Minimises  sum_hands w * (|c - c*|^2 / (1 cm)^2 + 4 (1 - n.n*) + 2 (1 - d.d*))
+             + sum_bones lambda_b |theta_b - theta_b^script|^2   with L-BFGS.
+    Returns the updated body_pose (T, Jb, 3)."""
+    frames = np.flatnonzero(weight > 1e-3)
+    body_pose = params.body_pose.detach().clone()
+    if len(frames) == 0:
+        return body_pose
+    sub = params[torch.as_tensor(frames)].detach()
+    bones = [b for b in IK_BONES if b in model.body_joint_names]
+    ids = torch.tensor([model.body_joint_names.index(b) for b in bones])
+    lam = torch.tensor([IK_BONES[b] for b in bones], dtype=sub.body_pose.dtype)
+    base = sub.body_pose[:, ids].clone()
+    var = base.clone().requires_grad_(True)
+    w = torch.as_tensor(weight[frames], dtype=var.dtype)
+    tgt = {s: [torch.as_tensor(a[frames], dtype=var.dtype) for a in v] for s, v in targets.items()}
+
+    fixed_pose = sub.body_pose.detach()
+
+    def loss_fn():
+        pose = fixed_pose.index_copy(1, ids, var)
+        out = model(dataclasses.replace(sub, body_pose=pose))
+        loss = (lam[None, :, None] * (var - base) ** 2).sum()
+        for side, (c_t, n_t, d_t) in tgt.items():
+            c, n, d = palm_frames(out.keypoints, out.vertices, palm_ids, side)
+            err = ((c - c_t) ** 2).sum(-1) / 0.01**2 + 4 * (1 - (n * n_t).sum(-1)) + 2 * (1 - (d * d_t).sum(-1))
+            loss = loss + (w * err).sum()
+        return loss
+
+    opt = torch.optim.LBFGS([var], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe", tolerance_change=1e-9)
+
+    def closure():
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+    body_pose[torch.as_tensor(frames)[:, None], ids[None]] = var.detach()
+    return body_pose
+
+
+def finger_bone_ids(model, finger: int) -> list[int]:
+    """Hand-pose indices of one finger's three phalanges (0 thumb .. 4 little)."""
+    prefix = FINGER_BONE_PREFIX[finger]
+    return [i for i, n in enumerate(model.hand_joint_names) if n.startswith(prefix + "-")]
+
+
+def finger_pose(model, side: str, curls: torch.Tensor) -> torch.Tensor:
+    """(B, Jh, 3) hand pose curling each finger by its own amount; curls (B, 5) radians per joint."""
+    axes = getattr(model, f"finger_flex_axes_{side}")  # (Jh, 3)
+    pose = torch.zeros(curls.shape[0], len(model.hand_joint_names), 3, dtype=axes.dtype)
+    for f in range(5):
+        scale = 0.6 if f == 0 else 1.0
+        for j in finger_bone_ids(model, f):
+            pose[:, j] = curls[:, f : f + 1] * scale * axes[j]
+    return pose
+
+
+def finger_vertex_ids(model, rest_vertices: np.ndarray, rest_keypoints: np.ndarray, side: str) -> list[np.ndarray]:
+    """Per finger, vertex ids of its phalanges (nearest finger segment within 1.5 cm), rest pose."""
+    o = HAND_OFFSET[side]
+    chains = [rest_keypoints[o + 1 + 4 * f : o + 5 + 4 * f] for f in range(5)]  # (4, 3) each
+    wrist = rest_keypoints[o]
+    near = np.linalg.norm(rest_vertices - wrist, axis=1) < 0.25
+    cand = np.flatnonzero(near)
+    pts = rest_vertices[cand]
+    dists = []
+    for chain in chains:
+        d = np.full(len(pts), np.inf)
+        for a, b in zip(chain[:-1], chain[1:]):
+            ab = b - a
+            s = np.clip(((pts - a) @ ab) / (ab @ ab), 0, 1)
+            d = np.minimum(d, np.linalg.norm(pts - (a + s[:, None] * ab), axis=1))
+        dists.append(d)
+    dists = np.stack(dists, 1)  # (N, 5)
+    best = dists.argmin(1)
+    return [cand[(best == f) & (dists[:, f] < 0.015)] for f in range(5)]
+
+
+def solve_finger_closure(model, params_one, spec: ObjectSpec, obj_pose: np.ndarray, sides: list[str],
+                         finger_ids: dict, relaxed: float) -> dict:
+    """Per side, (5,) curl per finger at which it touches the object without
+    sinking in more than 3 mm (tested on a grid of curl amounts at one frame)."""
+    grid = np.linspace(-0.2, 1.5, 18)
+    batch = params_one.map(lambda t: t.expand(len(grid), *t.shape[1:]).clone())
+    curls = torch.as_tensor(np.repeat(grid[:, None], 5, 1), dtype=batch.body_pose.dtype)
+    for side in sides:
+        pose = finger_pose(model, side, curls)
+        if side == "L":
+            batch.left_hand_pose = pose
+        else:
+            batch.right_hand_pose = pose
+    with torch.no_grad():
+        verts = model(batch).vertices.numpy()  # (G, V, 3)
+    R, t = obj_pose[:3, :3], obj_pose[:3, 3]
+    sdf = SurfaceDistance(spec.mesh)
+    result = {}
+    for side in sides:
+        best = []
+        for f in range(5):
+            ids = finger_ids[side][f]
+            local = (verts[:, ids] - t) @ R  # world -> object coordinates, (G, n, 3)
+            depth = -sdf(local.reshape(-1, 3)).reshape(len(grid), -1)
+            worst = depth.max(1)  # > 0: deepest point inside
+            ok = np.flatnonzero(worst < 0.003)
+            # fingers that never touch stay relaxed-ish; the first curl that touches wins
+            touching = ok[worst[ok] > -0.004] if len(ok) else ok
+            if len(touching):
+                best.append(grid[touching.max()])
+            elif len(ok) and ok.max() == len(grid) - 1 and worst[-1] < -0.004:
+                best.append(max(relaxed, 0.4))  # never reaches the surface: close loosely
+            elif len(ok):
+                best.append(grid[ok.max()])
+            else:
+                best.append(grid[int(np.argmin(worst))])
+        result[side] = np.array(best)
+    return result
+
+
+# ----------------------------------------------------------------------------- all together
+@dataclass
+class Animation:
+    """What `animate` produces; world frame, metres, T frames."""
+
+    params: object  # BodyParams (T, ...)
+    vertices: np.ndarray  # (T, V, 3) float32
+    keypoints: np.ndarray  # (T, 67, 3) float32
+    object_poses: np.ndarray  # (T, 4, 4) object -> world
+    contact: np.ndarray  # (T,) bool
+    props: list  # (name, mesh, 4x4 world pose) static scene meshes
+    phases: dict  # phase -> (first frame, last frame)
+    hand_gap: dict  # measured palm/hand-to-object distances in contact frames
+
+
+def hand_object_gap(vertices: np.ndarray, model, spec: ObjectSpec, obj_poses: np.ndarray, contact: np.ndarray,
+                    hands: tuple) -> dict:
+    """Per grasping hand over contact frames: the gap (closest hand-surface vertex
+    distance, 0 when touching) and the deepest penetration of the hand, metres."""
+    out = {}
+    frames = np.flatnonzero(contact)
+    sdf = SurfaceDistance(spec.mesh)
+    for hand in hands:
+        ids = model.contact_regions[f"{hand}_hand"].cpu().numpy()
+        gaps, pens = [], []
+        for f in frames:
+            local = (vertices[f, ids] - obj_poses[f, :3, 3]) @ obj_poses[f, :3, :3]
+            sd = -sdf(local)  # > 0 inside
+            gaps.append(max(0.0, -sd.max()))
+            pens.append(max(0.0, sd.max()))
+        if frames.size:
+            out[hand] = {"gap_mean_m": float(np.mean(gaps)), "gap_max_m": float(np.max(gaps)),
+                         "penetration_max_m": float(np.max(pens))}
+    return out
+
+
+def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotype, heading0: float = 0.0,
+            ik_iters: int = 40, relaxed_curl: float = 0.25) -> Animation:
+    """Run the script on the body model at `times` (seconds of script time)."""
+    T = len(times)
+    params = model.init_params(T)
+    params.shape[:] = torch.as_tensor(phenotype, dtype=params.shape.dtype)[None]
+    names = model.body_joint_names
+    pose = compose_rotvecs(posture_rotvecs(script, names, times), gait_rotvecs(script, names, times))
+    params.body_pose = torch.as_tensor(pose, dtype=params.body_pose.dtype)
+    for side in ("L", "R"):
+        model.curl_fingers(params, side, relaxed_curl)
+
+    rest_params = model.init_params(1)
+    rest_params.shape[:] = params.shape[:1]
+    rest = model(rest_params)
+    rest_v, rest_k = rest.vertices[0].detach().numpy(), rest.keypoints[0].detach().numpy()
+    palm_ids = palm_vertex_ids(model, rest_k, rest_v)
+
+    # 1-2: body placement: heading, pitch, stance-anchored root, feet on the floor.
+    yaw = eased_scalar(script.yaw_keys, times)
+    pitch = eased_scalar(script.pitch_keys, times)
+    with torch.no_grad():
+        local = model(params)  # identity orientation, zero translation: model coordinates
+    v_model = local.vertices.numpy()
+    R = body_orientation(model, heading_frames(yaw, np.zeros((T, 2)), heading0), pitch)  # (T, 3, 3)
+    feet = {}
+    for side in ("left", "right"):
+        ids = model.contact_regions[f"{side}_foot"].cpu().numpy()
+        feet[side] = np.einsum("tij,tj->ti", R, v_model[:, ids].mean(1))
+    root_xy = stance_anchored_root(feet["left"], feet["right"])
+    heading = heading_frames(yaw, root_xy, heading0)
+    R = body_orientation(model, heading, pitch)
+    lowest = np.einsum("tij,tvj->tv", R[:, 2:3], v_model).min(1)  # (T,) height of the lowest vertex
+    transl = np.concatenate([root_xy, -lowest[:, None]], axis=1)
+    params.global_orient = torch.as_tensor(Rotation.from_matrix(R).as_rotvec(), dtype=params.transl.dtype)
+    params.transl = torch.as_tensor(transl, dtype=params.transl.dtype)
+
+    # 3: object track; 4: arms to the grasp points.
+    stature = float(np.ptp(rest_v @ np.asarray(model.up_axis, float)))
+    obj_poses = object_track(script, heading, times, scale=stature / 1.625)
+    reach = eased_scalar(script.reach_keys, times)
+    gap = eased_scalar(script.gap_keys, times)
+    targets = grasp_targets(script, spec, obj_poses, gap)
+    params.body_pose = solve_arm_ik(model, params, targets, reach, palm_ids, iters=ik_iters)
+
+    # 5: fingers close onto the object.
+    c0, c1 = contact_interval(script)
+    contact = (times >= c0) & (times < c1)
+    closure = eased_scalar(script.close_keys, times)
+    sides = [SIDES[h] for h in script.hands]
+    if contact.any():
+        mid = int(np.flatnonzero(contact)[len(np.flatnonzero(contact)) // 2])
+        finger_ids = {s: finger_vertex_ids(model, rest_v, rest_k, s) for s in sides}
+        closed = solve_finger_closure(model, params[mid], spec, obj_poses[mid], sides, finger_ids, relaxed_curl)
+        for s in sides:
+            curls = relaxed_curl + closure[:, None] * (closed[s][None] - relaxed_curl)  # (T, 5)
+            hand = finger_pose(model, s, torch.as_tensor(curls, dtype=params.transl.dtype))
+            if s == "L":
+                params.left_hand_pose = hand
+            else:
+                params.right_hand_pose = hand
+
+    with torch.no_grad():
+        out = model(params)
+    vertices = out.vertices.numpy().astype(np.float32)
+    keypoints = out.keypoints.numpy().astype(np.float32)
+    props = [(name, mesh, heading[0] @ rel) for name, mesh, rel in prop_meshes(script)]
+    phase_frames = {}
+    for name, (a, b) in script.phases.items():
+        sel = np.flatnonzero((times >= a) & (times < b))
+        if sel.size:
+            phase_frames[name] = (int(sel[0]), int(sel[-1]))
+    gaps = hand_object_gap(vertices, model, spec, obj_poses, contact, script.hands)
+    return Animation(params.detach(), vertices, keypoints, obj_poses, contact, props, phase_frames, gaps)

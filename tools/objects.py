@@ -1,0 +1,166 @@
+"""Rigid object meshes for synthetic sessions, with their grasps.
+
+Every object is in metres with its origin at the centre of its bounding box and
++z up when it stands on the floor. Each object also says where hands hold it
+(`Grasp`: a palm contact point and the direction the palm pushes, in object
+coordinates, for a person standing on the object's -y side and facing +y) and
+which of its vertices are likely contact vertices (the faces those grasps use).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+OBJECT_NAMES = ("box", "cup", "chair")
+
+
+@dataclass(frozen=True)
+class Grasp:
+    """Where one palm touches the object, in object coordinates.
+
+    point (3,): palm-centre contact point on the surface; normal (3,): outward
+    surface normal there (the palm faces -normal); finger_dir (3,): the direction
+    the fingers point along the surface (perpendicular to normal)."""
+
+    point: tuple
+    normal: tuple
+    finger_dir: tuple
+
+
+@dataclass(frozen=True)
+class ObjectSpec:
+    """A rigid object: mesh, colour, mass and how the scripts hold it."""
+
+    name: str
+    mesh: trimesh.Trimesh = field(repr=False)
+    color: tuple  # RGB 0..255
+    mass_kg: float
+    grasps: dict  # 'left' / 'right' -> Grasp (two-handed grasp); one-hand objects use 'right'
+    contact_vertices: np.ndarray = field(repr=False)  # (C,) int, sorted
+
+    @property
+    def half_height(self) -> float:
+        return float(-self.mesh.bounds[0, 2])
+
+
+def _box_mesh(extents, max_edge: float) -> trimesh.Trimesh:
+    """A closed, evenly subdivided box centred at the origin."""
+    mesh = trimesh.creation.box(extents=extents)
+    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=max_edge)
+    return trimesh.Trimesh(vertices, faces, process=True)
+
+
+def box_mesh(extents=(0.30, 0.20, 0.15), max_edge: float = 0.03) -> trimesh.Trimesh:
+    """Cardboard box lying flat, 0.30 (x) by 0.20 (y) by 0.15 (z) m."""
+    return _box_mesh(extents, max_edge)
+
+
+def cup_mesh(radius: float = 0.04, height: float = 0.10, sections: int = 32) -> trimesh.Trimesh:
+    """Closed cylinder standing on z; side subdivided so the wall has vertices mid-height."""
+    mesh = trimesh.creation.cylinder(radius=radius, height=height, sections=sections)
+    vertices, faces = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=0.025)
+    return trimesh.Trimesh(vertices, faces, process=True)
+
+
+def chair_mesh(width=0.45, depth=0.45, height=0.85, seat_height=0.45, bar=0.04, gap=0.001) -> trimesh.Trimesh:
+    """A chair made of closed boxes that never overlap (1 mm gaps between parts).
+
+    Seat, four legs, two back posts rising from the rear (-y) legs and a back
+    panel between them. Disjoint closed parts keep the whole mesh watertight
+    and make inside/outside tests well defined without a boolean union."""
+    parts = []
+
+    def add(lo, hi):
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        part = _box_mesh(hi - lo, max_edge=0.06)
+        part.apply_translation((lo + hi) / 2)
+        parts.append(part)
+
+    hw, hd = width / 2, depth / 2
+    seat_lo, seat_hi = seat_height - 0.04, seat_height
+    add((-hw, -hd, seat_lo), (hw, hd, seat_hi))  # seat
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            x0 = hw - bar if sx > 0 else -hw
+            y0 = hd - bar if sy > 0 else -hd
+            add((x0, y0, 0.0), (x0 + bar, y0 + bar, seat_lo - gap))  # leg
+        x0 = hw - bar if sx > 0 else -hw
+        add((x0, -hd, seat_hi + gap), (x0 + bar, -hd + bar, height))  # back post
+    add((-hw + bar + gap, -hd + 0.01, seat_hi + 0.15), (hw - bar - gap, -hd + 0.03, height - 0.02))  # back panel
+    mesh = trimesh.util.concatenate(parts)
+    mesh.apply_translation((0.0, 0.0, -height / 2))
+    return mesh
+
+
+def _vertices_near(mesh: trimesh.Trimesh, points, normals, radius: float) -> np.ndarray:
+    """Vertices within `radius` of any grasp point whose vertex normal agrees with the grasp normal."""
+    verts = np.asarray(mesh.vertices)
+    vnormals = np.asarray(mesh.vertex_normals)
+    keep = np.zeros(len(verts), dtype=bool)
+    for p, n in zip(points, normals):
+        close = np.linalg.norm(verts - np.asarray(p), axis=1) < radius
+        facing = vnormals @ np.asarray(n) > 0.5
+        keep |= close & facing
+    return np.flatnonzero(keep)
+
+
+def make_object(name: str) -> ObjectSpec:
+    """The named object ('box', 'cup' or 'chair') with its grasps and contact vertices."""
+    if name == "box":
+        mesh = box_mesh()
+        hx = mesh.bounds[1, 0]
+        # Hands on the two short ends, slightly above centre, fingers pointing forward (+y).
+        grasps = {
+            "right": Grasp((hx, 0.0, 0.01), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+            "left": Grasp((-hx, 0.0, 0.01), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+        }
+        spec = dict(color=(176, 128, 72), mass_kg=1.2, radius=0.13)
+        contact_points = [g.point for g in grasps.values()]
+        contact_normals = [g.normal for g in grasps.values()]
+    elif name == "cup":
+        mesh = cup_mesh()
+        r = float(mesh.bounds[1, 0])
+        # One right hand wraps the wall from the person's right side, fingers around the front.
+        grasps = {"right": Grasp((r, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0))}
+        spec = dict(color=(200, 45, 45), mass_kg=0.3, radius=0.06)
+        contact_points = [(r * np.cos(a), r * np.sin(a), 0.0) for a in np.linspace(-np.pi / 2, np.pi / 2, 7)]
+        contact_normals = [(np.cos(a), np.sin(a), 0.0) for a in np.linspace(-np.pi / 2, np.pi / 2, 7)]
+    elif name == "chair":
+        mesh = chair_mesh()
+        top = float(mesh.bounds[1, 2])
+        hw = float(mesh.bounds[1, 0])
+        hd = float(mesh.bounds[1, 1])
+        # Both palms on top of the back posts (rear, -y), pushing down and forward.
+        grasps = {
+            "right": Grasp((hw - 0.02, -hd + 0.02, top), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
+            "left": Grasp((-hw + 0.02, -hd + 0.02, top), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
+        }
+        spec = dict(color=(60, 110, 190), mass_kg=4.5, radius=0.08)
+        contact_points = [g.point for g in grasps.values()]
+        contact_normals = [g.normal for g in grasps.values()]
+    else:
+        raise ValueError(f"unknown object {name!r}; choose one of {OBJECT_NAMES}")
+    contact = _vertices_near(mesh, contact_points, contact_normals, spec.pop("radius"))
+    return ObjectSpec(name=name, mesh=mesh, grasps=grasps, contact_vertices=contact, **spec)
+
+
+class SurfaceDistance:
+    """Signed distance to a closed mesh (> 0 outside, < 0 inside), open3d ray casting."""
+
+    def __init__(self, mesh: trimesh.Trimesh):
+        import open3d as o3d
+
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(
+            o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+            o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)),
+        )
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) points in object coordinates -> (N,) signed distances, metres."""
+        import open3d as o3d
+
+        pts = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
+        return self.scene.compute_signed_distance(pts).numpy().astype(np.float64)

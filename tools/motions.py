@@ -25,6 +25,7 @@ bends the knee (+); for the arms x swings the arm back (+) / forward (-).
 from __future__ import annotations
 
 import dataclasses
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -32,7 +33,7 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
-from tools.objects import ObjectSpec, SurfaceDistance
+from tools.objects import ObjectSpec, SdfGrid, SurfaceDistance
 
 SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair")
 
@@ -107,7 +108,7 @@ def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
 
 
 # Postures (anny bone -> axis-angle), mirrored for the two sides where it matters.
-ARMS_RELAXED = {"upperarm01.L": (0.0, -0.05, 0.0), "upperarm01.R": (0.0, 0.05, 0.0),
+ARMS_RELAXED = {"upperarm01.L": (0.0, 0.55, 0.0), "upperarm01.R": (0.0, -0.55, 0.0),
                 "lowerarm01.L": (-0.15, 0.0, 0.0), "lowerarm01.R": (-0.15, 0.0, 0.0)}
 
 
@@ -154,7 +155,7 @@ def pick_place() -> Script:
     gap_keys = [(0.0, 0.12), (2.0, 0.12), (2.7, 0.0), (5.8, 0.0), (6.3, 0.12)]
     close_keys = [(0.0, 0.0), (2.7, 0.0), (3.0, 1.0), (5.8, 1.0), (6.0, 0.0)]
     floor = _rel(0.0, 0.47, 0.075)  # box centre: 0.47 m ahead, lying on the floor
-    carry_rel = _rel(0.0, 0.42, 1.0)
+    carry_rel = _rel(0.0, 0.40, 0.88)
     object_keys = [
         ObjectKey(0.0, "world", floor, ref=2.7), ObjectKey(3.0, "world", floor, ref=2.7),
         ObjectKey(3.8, "body", carry_rel), ObjectKey(5.0, "body", carry_rel),
@@ -412,7 +413,46 @@ def object_track(script: Script, heading: np.ndarray, times: np.ndarray, scale: 
 
 
 # ----------------------------------------------------------------------------- hands
-def palm_frames(keypoints: torch.Tensor, vertices: torch.Tensor, palm_ids: dict, side: str):
+@dataclass
+class HandGeometry:
+    """Vertex ids of one hand (rest mesh): a palm-skin patch, the palm and back
+    (skinned to wrist/metacarpals) and the five fingers (thumb .. little)."""
+
+    palm_patch: torch.Tensor
+    hand: torch.Tensor
+    fingers: list
+
+
+def dominant_bones(model) -> np.ndarray:
+    """(V,) index into model.joint_names of the bone with the largest skinning weight (anny core)."""
+    core = model.core
+    ids = core.vertex_bone_indices.long().cpu().numpy()
+    w = core.vertex_bone_weights.float().cpu().numpy()
+    return ids[np.arange(len(ids)), w.argmax(1)]
+
+
+def hand_geometry(model, rest_vertices: np.ndarray, rest_keypoints: np.ndarray, radius: float = 0.03) -> dict:
+    """Per side ('L', 'R') the HandGeometry of the rest mesh."""
+    dominant = dominant_bones(model)
+    names = np.array(model.joint_names)[dominant]
+    out = {}
+    for side, region in (("L", "left_hand"), ("R", "right_hand")):
+        o = HAND_OFFSET[side]
+        wrist, index1, little1 = rest_keypoints[o], rest_keypoints[o + 5], rest_keypoints[o + 17]
+        centre = wrist + 0.55 * ((index1 + little1) / 2 - wrist)
+        ids = model.contact_regions[region].cpu().numpy()
+        patch = ids[np.linalg.norm(rest_vertices[ids] - centre, axis=1) < radius]
+        hand = np.flatnonzero((names == f"wrist.{side}") | np.char.startswith(names, "metacarpal") & np.char.endswith(names, f".{side}"))
+        fingers = [np.flatnonzero(np.char.startswith(names, prefix + "-") & np.char.endswith(names, f".{side}"))
+                   for prefix in FINGER_BONE_PREFIX]
+        # the wrist bone also skins the forearm's end: keep what lies beyond the wrist joint
+        along = (rest_vertices[hand] - wrist) @ ((index1 + little1) / 2 - wrist)
+        hand = hand[along > 0]
+        out[side] = HandGeometry(torch.as_tensor(patch), torch.as_tensor(hand), [torch.as_tensor(f) for f in fingers])
+    return out
+
+
+def palm_frames(keypoints: torch.Tensor, vertices: torch.Tensor, geom: HandGeometry, side: str):
     """Palm centre (B, 3), outward palm normal (B, 3), finger direction (B, 3) of one hand.
 
     The centre is the mean of a patch of palm-skin vertices; the directions come
@@ -424,70 +464,39 @@ def palm_frames(keypoints: torch.Tensor, vertices: torch.Tensor, palm_ids: dict,
     n = torch.linalg.cross(lateral, d) if side == "R" else torch.linalg.cross(d, lateral)
     n = n / n.norm(dim=-1, keepdim=True)
     d = d / d.norm(dim=-1, keepdim=True)
-    centre = vertices[:, palm_ids[side]].mean(1)
+    centre = vertices[:, geom.palm_patch].mean(1)
     return centre, n, d
-
-
-def palm_vertex_ids(model, rest_keypoints: np.ndarray, rest_vertices: np.ndarray, radius: float = 0.03) -> dict:
-    """Per side, palm-skin vertex ids: hand contact-region vertices near the palm centre."""
-    out = {}
-    for side, region in (("L", "left_hand"), ("R", "right_hand")):
-        o = HAND_OFFSET[side]
-        wrist, index1, little1 = rest_keypoints[o], rest_keypoints[o + 5], rest_keypoints[o + 17]
-        centre = wrist + 0.55 * ((index1 + little1) / 2 - wrist)
-        ids = model.contact_regions[region].cpu().numpy()
-        near = np.linalg.norm(rest_vertices[ids] - centre, axis=1) < radius
-        out[side] = torch.as_tensor(ids[near])
-    return out
 
 
 def grasp_targets(script: Script, spec: ObjectSpec, obj_poses: np.ndarray, gap: np.ndarray) -> dict:
     """Per hand side: target palm centre (T, 3), palm normal (T, 3), finger direction (T, 3), world.
 
-    The palm centre sits `gap` metres (plus 4 mm of skin clearance) out along
+    The palm centre sits `gap` metres (plus 5 mm of skin clearance) out along
     the surface normal; the palm faces the surface."""
     out = {}
     for hand in script.hands:
         g = spec.grasps[hand]
         R, t = obj_poses[:, :3, :3], obj_poses[:, :3, 3]
         normal = R @ np.asarray(g.normal, float)
-        point = (R @ np.asarray(g.point, float)) + t + normal * (0.004 + gap[:, None])
-        out[SIDES[hand]] = (point, -normal, R @ np.asarray(g.finger_dir, float))
+        point = (R @ np.asarray(g.point, float)) + t + normal * (0.005 + gap[:, None])
+        fdir = np.asarray(g.finger_dir, float)
+        out[SIDES[hand]] = (point, -normal, R @ (fdir / np.linalg.norm(fdir)))
     return out
 
 
-def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, palm_ids: dict, iters: int = 40):
-    """Bend spine and arms so the palms meet their targets, frames where `weight` > 0.
+def to_object_frame(points: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    """World points (B, N, 3) -> object coordinates with object->world poses (B, 4, 4)."""
+    return (points - poses[:, None, :3, 3]) @ poses[:, :3, :3]
 
-    Minimises  sum_hands w * (|c - c*|^2 / (1 cm)^2 + 4 (1 - n.n*) + 2 (1 - d.d*))
-             + sum_bones lambda_b |theta_b - theta_b^script|^2   with L-BFGS.
-    Returns the updated body_pose (T, Jb, 3)."""
-    frames = np.flatnonzero(weight > 1e-3)
-    body_pose = params.body_pose.detach().clone()
-    if len(frames) == 0:
-        return body_pose
-    sub = params[torch.as_tensor(frames)].detach()
-    bones = [b for b in IK_BONES if b in model.body_joint_names]
-    ids = torch.tensor([model.body_joint_names.index(b) for b in bones])
-    lam = torch.tensor([IK_BONES[b] for b in bones], dtype=sub.body_pose.dtype)
-    base = sub.body_pose[:, ids].clone()
-    var = base.clone().requires_grad_(True)
-    w = torch.as_tensor(weight[frames], dtype=var.dtype)
-    tgt = {s: [torch.as_tensor(a[frames], dtype=var.dtype) for a in v] for s, v in targets.items()}
 
-    fixed_pose = sub.body_pose.detach()
+def penetration(sdf, points_obj: torch.Tensor, margin: float) -> torch.Tensor:
+    """(B,) sum over points of how far each is inside the surface grown by `margin`, squared."""
+    return (torch.relu(margin - sdf(points_obj)) ** 2).sum(-1)
 
-    def loss_fn():
-        pose = fixed_pose.index_copy(1, ids, var)
-        out = model(dataclasses.replace(sub, body_pose=pose))
-        loss = (lam[None, :, None] * (var - base) ** 2).sum()
-        for side, (c_t, n_t, d_t) in tgt.items():
-            c, n, d = palm_frames(out.keypoints, out.vertices, palm_ids, side)
-            err = ((c - c_t) ** 2).sum(-1) / 0.01**2 + 4 * (1 - (n * n_t).sum(-1)) + 2 * (1 - (d * d_t).sum(-1))
-            loss = loss + (w * err).sum()
-        return loss
 
-    opt = torch.optim.LBFGS([var], lr=1.0, max_iter=iters, line_search_fn="strong_wolfe", tolerance_change=1e-9)
+def run_lbfgs(variables: list, loss_fn, iters: int) -> None:
+    opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=iters, history_size=50, line_search_fn="strong_wolfe",
+                            tolerance_change=1e-10, tolerance_grad=1e-9)
 
     def closure():
         opt.zero_grad()
@@ -496,6 +505,46 @@ def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, palm_ids: dic
         return loss
 
     opt.step(closure)
+
+
+def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, sdf, obj_poses: np.ndarray,
+                 iters: int = 40, prior_pose: torch.Tensor | None = None) -> torch.Tensor:
+    """Bend spine and arms so the palms meet their targets, at frames where `weight` > 0.
+
+    Minimises, per frame, with L-BFGS:
+      w * sum_hands [ |c - c*|^2 / (1 cm)^2 + 10 (1 - n.n*) + 10 (1 - d.d*)
+                      + |palm and back of hand inside the object|^2 / (2 mm)^2 ]
+      + sum_bones lambda_b |theta_b - theta_b^script|^2
+    theta^script is `prior_pose` (T, Jb, 3) when given, else params.body_pose (the start).
+    Returns the updated body_pose (T, Jb, 3)."""
+    frames = np.flatnonzero(weight > 1e-3)
+    body_pose = params.body_pose.detach().clone()
+    if len(frames) == 0:
+        return body_pose
+    sub = params[torch.as_tensor(frames)].detach()
+    bones = [b for b in IK_BONES if b in model.body_joint_names]
+    ids = torch.tensor([model.body_joint_names.index(b) for b in bones])
+    dtype = sub.body_pose.dtype
+    lam = torch.tensor([IK_BONES[b] for b in bones], dtype=dtype)
+    var = sub.body_pose[:, ids].clone().requires_grad_(True)
+    prior = params.body_pose if prior_pose is None else prior_pose
+    base = prior[torch.as_tensor(frames)][:, ids].detach().clone()
+    w = torch.as_tensor(weight[frames], dtype=dtype)
+    poses = torch.as_tensor(obj_poses[frames], dtype=dtype)
+    tgt = {s: [torch.as_tensor(a[frames], dtype=dtype) for a in v] for s, v in targets.items()}
+    fixed_pose = sub.body_pose.detach()
+
+    def loss_fn():
+        out = model(dataclasses.replace(sub, body_pose=fixed_pose.index_copy(1, ids, var)))
+        loss = (lam[None, :, None] * (var - base) ** 2).sum()
+        for side, (c_t, n_t, d_t) in tgt.items():
+            c, n, d = palm_frames(out.keypoints, out.vertices, geom[side], side)
+            err = ((c - c_t) ** 2).sum(-1) / 0.01**2 + 10 * (1 - (n * n_t).sum(-1)) + 10 * (1 - (d * d_t).sum(-1))
+            inside = penetration(sdf, to_object_frame(out.vertices[:, geom[side].hand], poses), 0.001) / 0.002**2
+            loss = loss + (w * (err + inside)).sum()
+        return loss
+
+    run_lbfgs([var], loss_fn, iters)
     body_pose[torch.as_tensor(frames)[:, None], ids[None]] = var.detach()
     return body_pose
 
@@ -506,76 +555,131 @@ def finger_bone_ids(model, finger: int) -> list[int]:
     return [i for i, n in enumerate(model.hand_joint_names) if n.startswith(prefix + "-")]
 
 
-def finger_pose(model, side: str, curls: torch.Tensor) -> torch.Tensor:
-    """(B, Jh, 3) hand pose curling each finger by its own amount; curls (B, 5) radians per joint."""
+def finger_pose(model, side: str, curls: torch.Tensor, thumb: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, Jh, 3) hand pose curling each finger by its own amount.
+
+    curls (B, 5) radians per joint (thumb scaled by 0.6); thumb (B, 3) an extra
+    rotation of the thumb's first bone (composed by adding axis-angles: small)."""
     axes = getattr(model, f"finger_flex_axes_{side}")  # (Jh, 3)
-    pose = torch.zeros(curls.shape[0], len(model.hand_joint_names), 3, dtype=axes.dtype)
+    scale = torch.zeros(len(model.hand_joint_names), 5, dtype=axes.dtype)
     for f in range(5):
-        scale = 0.6 if f == 0 else 1.0
         for j in finger_bone_ids(model, f):
-            pose[:, j] = curls[:, f : f + 1] * scale * axes[j]
+            scale[j, f] = 0.6 if f == 0 else 1.0
+    pose = (curls.to(axes.dtype) @ scale.T)[..., None] * axes[None]  # (B, Jh, 3)
+    if thumb is not None:
+        first = finger_bone_ids(model, 0)[0]
+        pose = pose.index_add(1, torch.tensor([first]), thumb[:, None].to(axes.dtype))
     return pose
 
 
-def finger_vertex_ids(model, rest_vertices: np.ndarray, rest_keypoints: np.ndarray, side: str) -> list[np.ndarray]:
-    """Per finger, vertex ids of its phalanges (nearest finger segment within 1.5 cm), rest pose."""
-    o = HAND_OFFSET[side]
-    chains = [rest_keypoints[o + 1 + 4 * f : o + 5 + 4 * f] for f in range(5)]  # (4, 3) each
-    wrist = rest_keypoints[o]
-    near = np.linalg.norm(rest_vertices - wrist, axis=1) < 0.25
-    cand = np.flatnonzero(near)
-    pts = rest_vertices[cand]
-    dists = []
-    for chain in chains:
-        d = np.full(len(pts), np.inf)
-        for a, b in zip(chain[:-1], chain[1:]):
-            ab = b - a
-            s = np.clip(((pts - a) @ ab) / (ab @ ab), 0, 1)
-            d = np.minimum(d, np.linalg.norm(pts - (a + s[:, None] * ab), axis=1))
-        dists.append(d)
-    dists = np.stack(dists, 1)  # (N, 5)
-    best = dists.argmin(1)
-    return [cand[(best == f) & (dists[:, f] < 0.015)] for f in range(5)]
+def solve_finger_grasp(model, params, frames: np.ndarray, geom: dict, sides: list, sdf, obj_poses: np.ndarray,
+                       relaxed: float, iters: int = 40, init: dict | None = None) -> dict:
+    """Close the fingers onto the object at `frames` (contact frames).
+
+    Per side, variables: a curl per finger (F, 5) and a thumb-base rotation (F, 3).
+    Minimises  |hand inside the object|^2 / (2 mm)^2 + sum_fingers (gap of the
+    finger's closest point)^2 / (4 mm)^2 + small priors, + temporal smoothness.
+    Returns side -> (curls (F, 5), thumb (F, 3)) tensors."""
+    sub = params[torch.as_tensor(frames)].detach()
+    dtype = sub.body_pose.dtype
+    poses = torch.as_tensor(obj_poses[frames], dtype=dtype)
+    F_ = len(frames)
+    if init is None:
+        init = {s: (torch.full((F_, 5), relaxed, dtype=dtype), torch.zeros(F_, 3, dtype=dtype)) for s in sides}
+    curls = {s: init[s][0].clone().to(dtype).requires_grad_(True) for s in sides}
+    thumbs = {s: init[s][1].clone().to(dtype).requires_grad_(True) for s in sides}
+
+    def loss_fn():
+        hands = {s: finger_pose(model, s, curls[s], thumbs[s]) for s in sides}
+        out = model(dataclasses.replace(sub, left_hand_pose=hands.get("L", sub.left_hand_pose),
+                                        right_hand_pose=hands.get("R", sub.right_hand_pose)))
+        loss = 0.0
+        for s in sides:
+            g = geom[s]
+            loss = loss + penetration(sdf, to_object_frame(out.vertices[:, g.hand], poses), 0.001).sum() / 0.002**2
+            for f, ids in enumerate(g.fingers):
+                d = sdf(to_object_frame(out.vertices[:, ids], poses))  # (F, n)
+                loss = loss + (torch.relu(0.001 - d) ** 2).sum() / 0.002**2
+                loss = loss + (torch.relu(d.min(1).values - 0.002) ** 2).sum() / 0.004**2
+            c = curls[s]
+            loss = loss + 0.5 * ((c - relaxed) ** 2).sum() + 2.0 * (thumbs[s] ** 2).sum()
+            loss = loss + 10.0 * (torch.relu(c - 1.6) ** 2 + torch.relu(-0.3 - c) ** 2).sum()
+            if F_ > 1:
+                loss = loss + 20.0 * ((c[1:] - c[:-1]) ** 2).sum() + 20.0 * ((thumbs[s][1:] - thumbs[s][:-1]) ** 2).sum()
+        return loss
+
+    run_lbfgs(list(curls.values()) + list(thumbs.values()), loss_fn, iters)
+    return {s: (curls[s].detach(), thumbs[s].detach()) for s in sides}
 
 
-def solve_finger_closure(model, params_one, spec: ObjectSpec, obj_pose: np.ndarray, sides: list[str],
-                         finger_ids: dict, relaxed: float) -> dict:
-    """Per side, (5,) curl per finger at which it touches the object without
-    sinking in more than 3 mm (tested on a grid of curl amounts at one frame)."""
-    grid = np.linspace(-0.2, 1.5, 18)
-    batch = params_one.map(lambda t: t.expand(len(grid), *t.shape[1:]).clone())
-    curls = torch.as_tensor(np.repeat(grid[:, None], 5, 1), dtype=batch.body_pose.dtype)
-    for side in sides:
-        pose = finger_pose(model, side, curls)
-        if side == "L":
-            batch.left_hand_pose = pose
-        else:
-            batch.right_hand_pose = pose
-    with torch.no_grad():
-        verts = model(batch).vertices.numpy()  # (G, V, 3)
-    R, t = obj_pose[:3, :3], obj_pose[:3, 3]
-    sdf = SurfaceDistance(spec.mesh)
-    result = {}
-    for side in sides:
-        best = []
-        for f in range(5):
-            ids = finger_ids[side][f]
-            local = (verts[:, ids] - t) @ R  # world -> object coordinates, (G, n, 3)
-            depth = -sdf(local.reshape(-1, 3)).reshape(len(grid), -1)
-            worst = depth.max(1)  # > 0: deepest point inside
-            ok = np.flatnonzero(worst < 0.003)
-            # fingers that never touch stay relaxed-ish; the first curl that touches wins
-            touching = ok[worst[ok] > -0.004] if len(ok) else ok
-            if len(touching):
-                best.append(grid[touching.max()])
-            elif len(ok) and ok.max() == len(grid) - 1 and worst[-1] < -0.004:
-                best.append(max(relaxed, 0.4))  # never reaches the surface: close loosely
-            elif len(ok):
-                best.append(grid[ok.max()])
-            else:
-                best.append(grid[int(np.argmin(worst))])
-        result[side] = np.array(best)
-    return result
+def coarse_subset(frames: np.ndarray, times: np.ndarray, rate_hz: float) -> np.ndarray:
+    """A subset of `frames` at most ~1/rate_hz seconds apart, keeping the first and last."""
+    if len(frames) == 0:
+        return frames
+    keep, last = [frames[0]], times[frames[0]]
+    for f in frames[1:-1]:
+        if times[f] - last >= 1.0 / rate_hz - 1e-9:
+            keep.append(f)
+            last = times[f]
+    if frames[-1] != keep[-1]:
+        keep.append(frames[-1])
+    return np.array(keep)
+
+
+def interpolate_corrections(base: torch.Tensor, solved: torch.Tensor, solved_frames: np.ndarray) -> torch.Tensor:
+    """Spread per-bone rotation corrections solved at some frames over all frames.
+
+    base (T, J, 3) scripted axis-angles; solved (S, J, 3) at `solved_frames`.
+    The correction R_base^-1 R_solved is slerped between solved frames and held
+    constant outside them; returns base composed with it, (T, J, 3)."""
+    T, J, _ = base.shape
+    b = Rotation.from_rotvec(base.double().numpy().reshape(-1, 3))
+    b_s = Rotation.from_rotvec(base[solved_frames].double().numpy().reshape(-1, 3))
+    corr = (b_s.inv() * Rotation.from_rotvec(solved.double().numpy().reshape(-1, 3))).as_rotvec().reshape(len(solved_frames), J, 3)
+    frames = np.arange(T)
+    if len(solved_frames) == 1:
+        spread = np.broadcast_to(corr, (T, J, 3))
+    else:
+        spread = np.empty((T, J, 3))
+        for j in range(J):
+            slerp = Slerp(solved_frames.astype(float), Rotation.from_rotvec(corr[:, j]))
+            spread[:, j] = slerp(np.clip(frames, solved_frames[0], solved_frames[-1]).astype(float)).as_rotvec()
+    out = (b * Rotation.from_rotvec(spread.reshape(-1, 3))).as_rotvec().reshape(T, J, 3)
+    return torch.as_tensor(out, dtype=base.dtype)
+
+
+def coarse_to_fine_ik(model, params, targets, weight, geom, sdf, obj_poses, times, rate_hz, iters, polish_iters):
+    """Arm IK solved at <= rate_hz, spread to all frames, then polished at every frame."""
+    active = np.flatnonzero(weight > 1e-3)
+    coarse = coarse_subset(active, times, rate_hz)
+    if len(coarse) == len(active):
+        return solve_arm_ik(model, params, targets, weight, geom, sdf, obj_poses, iters=iters)
+    mask = np.zeros(len(times), bool)
+    mask[coarse] = True
+    solved = solve_arm_ik(model, params, targets, np.where(mask, weight, 0.0), geom, sdf, obj_poses, iters=iters)
+    # anchor the spread at the frames just outside the active range (no correction there)
+    anchors = np.unique(np.concatenate([coarse, np.clip([active[0] - 1, active[-1] + 1], 0, len(times) - 1)]))
+    start = interpolate_corrections(params.body_pose.detach(), solved[anchors], anchors)
+    warm = dataclasses.replace(params, body_pose=start)
+    return solve_arm_ik(model, warm, targets, weight, geom, sdf, obj_poses, iters=polish_iters,
+                        prior_pose=params.body_pose)
+
+
+def coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, times, relaxed, rate_hz, iters,
+                        polish_iters) -> dict:
+    """Finger grip solved at <= rate_hz among the contact frames, interpolated, then polished."""
+    coarse = coarse_subset(frames, times, rate_hz)
+    grip = solve_finger_grasp(model, params, coarse, geom, sides, sdf, obj_poses, relaxed, iters=iters)
+    if len(coarse) == len(frames):
+        return grip
+    init = {}
+    for s in sides:
+        c, t = (g.numpy() for g in grip[s])
+        ci = np.stack([np.interp(frames, coarse, c[:, k]) for k in range(5)], 1)
+        ti = np.stack([np.interp(frames, coarse, t[:, k]) for k in range(3)], 1)
+        init[s] = (torch.as_tensor(ci), torch.as_tensor(ti))
+    return solve_finger_grasp(model, params, frames, geom, sides, sdf, obj_poses, relaxed, iters=polish_iters,
+                              init=init)
 
 
 # ----------------------------------------------------------------------------- all together
@@ -590,33 +694,41 @@ class Animation:
     contact: np.ndarray  # (T,) bool
     props: list  # (name, mesh, 4x4 world pose) static scene meshes
     phases: dict  # phase -> (first frame, last frame)
-    hand_gap: dict  # measured palm/hand-to-object distances in contact frames
+    hand_gap: dict  # measured hand-to-object distances in contact frames
+    timings: dict = field(default_factory=dict)  # seconds per stage
 
 
-def hand_object_gap(vertices: np.ndarray, model, spec: ObjectSpec, obj_poses: np.ndarray, contact: np.ndarray,
+def hand_object_gap(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj_poses: np.ndarray, contact: np.ndarray,
                     hands: tuple) -> dict:
-    """Per grasping hand over contact frames: the gap (closest hand-surface vertex
-    distance, 0 when touching) and the deepest penetration of the hand, metres."""
+    """Per grasping hand over contact frames, metres: the gap between the palm
+    patch and the surface (closest palm vertex, 0 when touching), and the
+    deepest point of the whole hand (palm and fingers) inside the object."""
     out = {}
     frames = np.flatnonzero(contact)
+    if not frames.size:
+        return out
     sdf = SurfaceDistance(spec.mesh)
     for hand in hands:
-        ids = model.contact_regions[f"{hand}_hand"].cpu().numpy()
+        g = geom[SIDES[hand]]
+        whole = torch.cat([g.hand] + list(g.fingers)).numpy()
         gaps, pens = [], []
         for f in frames:
-            local = (vertices[f, ids] - obj_poses[f, :3, 3]) @ obj_poses[f, :3, :3]
-            sd = -sdf(local)  # > 0 inside
-            gaps.append(max(0.0, -sd.max()))
-            pens.append(max(0.0, sd.max()))
-        if frames.size:
-            out[hand] = {"gap_mean_m": float(np.mean(gaps)), "gap_max_m": float(np.max(gaps)),
-                         "penetration_max_m": float(np.max(pens))}
+            R, t = obj_poses[f, :3, :3], obj_poses[f, :3, 3]
+            gaps.append(max(0.0, sdf((vertices[f, g.palm_patch.numpy()] - t) @ R).min()))
+            pens.append(max(0.0, -sdf((vertices[f, whole] - t) @ R).min()))
+        out[hand] = {"palm_gap_mean_m": float(np.mean(gaps)), "palm_gap_max_m": float(np.max(gaps)),
+                     "penetration_max_m": float(np.max(pens)), "penetration_mean_m": float(np.mean(pens))}
     return out
 
 
 def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotype, heading0: float = 0.0,
-            ik_iters: int = 40, relaxed_curl: float = 0.25) -> Animation:
-    """Run the script on the body model at `times` (seconds of script time)."""
+            ik_iters: int = 150, polish_iters: int = 25, solve_rate_hz: float = 10.0,
+            relaxed_curl: float = 0.25) -> Animation:
+    """Run the script on the body model at `times` (seconds of script time).
+
+    The arm IK and the finger grip are solved at <= `solve_rate_hz` with
+    `ik_iters` L-BFGS iterations, then polished at every frame (`polish_iters`)."""
+    clock = {"start": time.perf_counter()}
     T = len(times)
     params = model.init_params(T)
     params.shape[:] = torch.as_tensor(phenotype, dtype=params.shape.dtype)[None]
@@ -628,9 +740,10 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
 
     rest_params = model.init_params(1)
     rest_params.shape[:] = params.shape[:1]
-    rest = model(rest_params)
-    rest_v, rest_k = rest.vertices[0].detach().numpy(), rest.keypoints[0].detach().numpy()
-    palm_ids = palm_vertex_ids(model, rest_k, rest_v)
+    with torch.no_grad():
+        rest = model(rest_params)
+    rest_v, rest_k = rest.vertices[0].numpy(), rest.keypoints[0].numpy()
+    geom = hand_geometry(model, rest_v, rest_k)
 
     # 1-2: body placement: heading, pitch, stance-anchored root, feet on the floor.
     yaw = eased_scalar(script.yaw_keys, times)
@@ -654,28 +767,45 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     # 3: object track; 4: arms to the grasp points.
     stature = float(np.ptp(rest_v @ np.asarray(model.up_axis, float)))
     obj_poses = object_track(script, heading, times, scale=stature / 1.625)
+    sdf = SdfGrid(spec.mesh)
     reach = eased_scalar(script.reach_keys, times)
     gap = eased_scalar(script.gap_keys, times)
     targets = grasp_targets(script, spec, obj_poses, gap)
-    params.body_pose = solve_arm_ik(model, params, targets, reach, palm_ids, iters=ik_iters)
+    clock["placement"] = time.perf_counter()
+    params.body_pose = coarse_to_fine_ik(model, params, targets, reach, geom, sdf, obj_poses, times, solve_rate_hz,
+                                         ik_iters, polish_iters)
 
-    # 5: fingers close onto the object.
+    clock["arm_ik"] = time.perf_counter()
+    # 5: fingers close onto the object during contact, open (relaxed) otherwise.
     c0, c1 = contact_interval(script)
     contact = (times >= c0) & (times < c1)
     closure = eased_scalar(script.close_keys, times)
     sides = [SIDES[h] for h in script.hands]
-    if contact.any():
-        mid = int(np.flatnonzero(contact)[len(np.flatnonzero(contact)) // 2])
-        finger_ids = {s: finger_vertex_ids(model, rest_v, rest_k, s) for s in sides}
-        closed = solve_finger_closure(model, params[mid], spec, obj_poses[mid], sides, finger_ids, relaxed_curl)
+    frames = np.flatnonzero(contact)
+    if frames.size:
+        grip = coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, times, relaxed_curl,
+                                   solve_rate_hz, ik_iters, polish_iters)
+        dtype = params.transl.dtype
+        k_reach = torch.as_tensor(reach, dtype=dtype)[:, None]
+        k_close = torch.as_tensor(closure, dtype=dtype)[:, None]
+        first, last = frames[0], frames[-1]
         for s in sides:
-            curls = relaxed_curl + closure[:, None] * (closed[s][None] - relaxed_curl)  # (T, 5)
-            hand = finger_pose(model, s, torch.as_tensor(curls, dtype=params.transl.dtype))
+            # the grip shape per frame: solved in contact, held before and after
+            curls = torch.empty(T, 5, dtype=dtype)
+            thumb = torch.empty(T, 3, dtype=dtype)
+            curls[torch.as_tensor(frames)], thumb[torch.as_tensor(frames)] = grip[s]
+            curls[:first], thumb[:first] = grip[s][0][0], grip[s][1][0]
+            curls[last + 1:], thumb[last + 1:] = grip[s][0][-1], grip[s][1][-1]
+            # relaxed -> open (fingers stretched, as the hand nears) -> grip (as it closes)
+            opened = torch.clamp(curls.min(0).values, max=0.0) - 0.1  # (5,)
+            shape = relaxed_curl + k_reach * (opened - relaxed_curl) + k_close * (curls - opened)
+            hand = finger_pose(model, s, shape, k_reach * thumb)
             if s == "L":
                 params.left_hand_pose = hand
             else:
                 params.right_hand_pose = hand
 
+    clock["fingers"] = time.perf_counter()
     with torch.no_grad():
         out = model(params)
     vertices = out.vertices.numpy().astype(np.float32)
@@ -686,5 +816,8 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
         sel = np.flatnonzero((times >= a) & (times < b))
         if sel.size:
             phase_frames[name] = (int(sel[0]), int(sel[-1]))
-    gaps = hand_object_gap(vertices, model, spec, obj_poses, contact, script.hands)
-    return Animation(params.detach(), vertices, keypoints, obj_poses, contact, props, phase_frames, gaps)
+    gaps = hand_object_gap(vertices, geom, spec, obj_poses, contact, script.hands)
+    clock["end"] = time.perf_counter()
+    names = list(clock)
+    timings = {b: clock[b] - clock[a] for a, b in zip(names[:-1], names[1:])}
+    return Animation(params.detach(), vertices, keypoints, obj_poses, contact, props, phase_frames, gaps, timings)

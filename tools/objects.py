@@ -111,10 +111,11 @@ def make_object(name: str) -> ObjectSpec:
     if name == "box":
         mesh = box_mesh()
         hx = mesh.bounds[1, 0]
-        # Hands on the two short ends, slightly above centre, fingers pointing forward (+y).
+        # Hands on the two short ends, fingers pointing forward and down.
+        down_fwd = (0.0, 0.6, -0.8)
         grasps = {
-            "right": Grasp((hx, 0.0, 0.01), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
-            "left": Grasp((-hx, 0.0, 0.01), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+            "right": Grasp((hx, -0.01, 0.0), (1.0, 0.0, 0.0), down_fwd),
+            "left": Grasp((-hx, -0.01, 0.0), (-1.0, 0.0, 0.0), down_fwd),
         }
         spec = dict(color=(176, 128, 72), mass_kg=1.2, radius=0.13)
         contact_points = [g.point for g in grasps.values()]
@@ -164,3 +165,37 @@ class SurfaceDistance:
 
         pts = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
         return self.scene.compute_signed_distance(pts).numpy().astype(np.float64)
+
+
+class SdfGrid:
+    """Signed distance of a mesh sampled on a regular grid, queried with
+    trilinear interpolation in torch (differentiable: used to keep hands out of
+    the object and fingers on its surface). > 0 outside, metres."""
+
+    def __init__(self, mesh: trimesh.Trimesh, margin: float = 0.06, max_cells: int = 96):
+        import torch
+
+        lo = np.asarray(mesh.bounds[0]) - margin
+        hi = np.asarray(mesh.bounds[1]) + margin
+        spacing = max(float((hi - lo).max()) / max_cells, 0.003)
+        shape = np.ceil((hi - lo) / spacing).astype(int) + 1
+        axes = [lo[k] + spacing * np.arange(shape[k]) for k in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+        values = SurfaceDistance(mesh)(grid).reshape(*shape)  # (X, Y, Z)
+        # grid_sample wants (N, C, D, H, W) with x indexing W: store as (Z, Y, X).
+        self.volume = torch.as_tensor(values.transpose(2, 1, 0)[None, None], dtype=torch.float32)
+        self.lo = torch.as_tensor(lo, dtype=torch.float32)
+        self.hi = torch.as_tensor(lo + spacing * (shape - 1), dtype=torch.float32)
+
+    def __call__(self, points):
+        """(..., 3) torch points in object coordinates -> (...) signed distances."""
+        import torch
+        import torch.nn.functional as F
+
+        shape = points.shape[:-1]
+        p = points.reshape(-1, 3).to(self.volume.dtype)
+        inside = torch.minimum(torch.maximum(p, self.lo), self.hi)
+        outside = (p - inside).norm(dim=-1)  # distance beyond the grid box
+        norm = 2 * (inside - self.lo) / (self.hi - self.lo) - 1  # (N, 3) in [-1, 1], x y z
+        sample = F.grid_sample(self.volume, norm[None, None, None], align_corners=True, padding_mode="border")
+        return (sample.reshape(-1) + outside).reshape(shape).to(points.dtype)

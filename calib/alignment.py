@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import open3d as o3d
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 reg = o3d.pipelines.registration
 
@@ -28,12 +29,20 @@ class PairAgreement:
     misalignment, not the ~voxel/2 spacing between two samplings of a surface);
     icp_rmse_mm: after ICP, the RMS point-to-plane residual of the correspondences
     (a's points within max_distance of b), the noise floor of the two sensors;
-    correction_rotation_deg: rotation angle of the ICP correction;
-    correction_translation_mm: how far the correction moves the centre of the overlap
-    (so it does not depend on where the world origin is);
+    correction_rotation_deg / correction_translation_mm: the trustworthy size of
+    the correction, i.e. its OBSERVABLE part (rotation angle; how far it moves
+    the centre of the overlap, so it does not depend on where the world origin is);
+    observable_rotation_deg / observable_translation_mm: the same figures (kept
+    under an explicit name for readers that want to be sure);
+    full_rotation_deg / full_translation_mm: the unconstrained 6-dof ICP
+    correction, which slides along poorly constrained directions (planes) on
+    noisy data: diagnostic only, never flag on it;
+    unobservable: the directions the overlap does not constrain (e.g.
+    "translation along (0.00, 1.00, 0.00)", "rotation about (...)"), left out
+    of the correction;
     fitness: fraction of a's points with a correspondence after ICP;
-    correction: (4, 4) world-frame transform moving a's points onto b's
-    (apply it to a's T_world_from_cam to re-align camera a to b).
+    correction: (4, 4) world-frame transform (observable part) moving a's points
+    onto b's (apply it to a's T_world_from_cam to re-align camera a to b).
     Distances are NaN when the views do not overlap.
     """
 
@@ -46,6 +55,11 @@ class PairAgreement:
     correction_translation_mm: float
     fitness: float
     correction: np.ndarray = field(default_factory=lambda: np.eye(4), repr=False)
+    observable_rotation_deg: float = float("nan")
+    observable_translation_mm: float = float("nan")
+    full_rotation_deg: float = float("nan")
+    full_translation_mm: float = float("nan")
+    unobservable: list = field(default_factory=list)
 
 
 def neighbour_pairs(camera_centers) -> list[tuple[int, int]]:
@@ -108,11 +122,110 @@ def _view_cloud(points: np.ndarray, voxel_size: float, name: str) -> o3d.geometr
     pts = pts[np.isfinite(pts).all(axis=1)]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
     if voxel_size > 0 and len(pts):
-        cloud = cloud.voxel_down_sample(float(voxel_size))
+        cloud = cloud.voxel_down_sample(float(voxel_size))  # averages the points in a voxel: less noise
     if len(cloud.points):
-        radius = 3 * voxel_size if voxel_size > 0 else 0.03
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=30))
+        # a wide neighbourhood: depth noise of ~1 cm tilts normals estimated on a few cm
+        radius = max(4 * voxel_size, 0.06)
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=60))
     return cloud
+
+
+def twist_transform(x: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """(4, 4) rigid transform of a scaled twist x (6,) = [radius * rotation vector,
+    translation of `centre`], the rotation being about `centre`."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(np.asarray(x[:3]) / radius).as_matrix()
+    T[:3, 3] = centre - T[:3, :3] @ centre + x[3:]
+    return T
+
+
+def scaled_twist(T: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
+    """Inverse of twist_transform: (6,) [radius * rotation vector, motion of centre]."""
+    rot = Rotation.from_matrix(T[:3, :3]).as_rotvec() * radius
+    return np.concatenate([rot, T[:3, :3] @ centre + T[:3, 3] - centre])
+
+
+def point_to_plane_system(q, n, residual, weights, centre, radius):
+    """Weighted normal equations of point-to-plane alignment, per point.
+
+    q (N, 3) moved source points, n (N, 3) target normals, residual (N,) signed
+    distances, weights (N,). Rows J_i = [(q_i - centre) x n_i / radius, n_i], so
+    the unknown is a scaled twist whose six entries are all lengths (a rotation
+    counts by how far it moves points at `radius`). Returns H (6, 6) = J^T W J / sum(W)
+    and g (6,) = J^T W r / sum(W)."""
+    J = np.hstack([np.cross(q - centre, n) / radius, n])  # (N, 6)
+    Jw = J * weights[:, None]
+    total = max(float(weights.sum()), 1e-12)
+    return Jw.T @ J / total, Jw.T @ residual / total
+
+
+def observable_basis(H: np.ndarray, min_constraint: float) -> tuple[np.ndarray, np.ndarray]:
+    """Eigen-directions of H (6, 6) split into constrained (eigenvalue at least
+    min_constraint x the largest) and unconstrained ones: (6, k), (6, 6 - k).
+
+    A plane constrains only its normal translation and the two tilts; a scene that
+    is mostly floor and walls leaves the rest to a little clutter, where noise
+    and view-dependent sampling make ICP slide: those directions are dropped."""
+    ev, V = np.linalg.eigh(H)
+    keep = ev >= min_constraint * max(ev.max(), 1e-12)
+    return V[:, keep], V[:, ~keep]
+
+
+def describe_directions(V: np.ndarray) -> list[str]:
+    """Words for unconstrained twist directions (6, k): a translation or a rotation axis."""
+    out = []
+    for v in V.T:
+        rot, trans = v[:3], v[3:]
+        kind, axis = ("rotation about", rot) if np.linalg.norm(rot) > np.linalg.norm(trans) else ("translation along", trans)
+        axis = axis / max(np.linalg.norm(axis), 1e-12)
+        axis = axis if axis[np.argmax(np.abs(axis))] > 0 else -axis
+        out.append(f"{kind} ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f})")
+    return out
+
+
+def robust_point_to_plane_icp(
+    src: np.ndarray,
+    tgt_tree: cKDTree,
+    tgt: np.ndarray,
+    tgt_normals: np.ndarray,
+    max_distance: float,
+    centre: np.ndarray,
+    radius: float,
+    basis: np.ndarray | None,
+    iterations: int = 30,
+) -> np.ndarray:
+    """(4, 4) point-to-plane ICP of src (N, 3) onto tgt (M, 3), from identity.
+
+    Huber weights (scale from the residuals' MAD) tame the noise and outliers;
+    each Gauss-Newton step is solved only within `basis` (6, k) of scaled-twist
+    directions (all six when None), so poorly constrained directions never move."""
+    T = np.eye(4)
+    for _ in range(iterations):
+        q = src @ T[:3, :3].T + T[:3, 3]
+        dist, idx = tgt_tree.query(q, k=1, distance_upper_bound=max_distance)
+        ok = np.isfinite(dist)
+        if ok.sum() < 6:
+            break
+        n = tgt_normals[idx[ok]]
+        residual = ((q[ok] - tgt[idx[ok]]) * n).sum(axis=1)
+        scale = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+        k = 1.345 * max(scale, 1e-4)
+        weights = np.minimum(1.0, k / np.maximum(np.abs(residual), 1e-12))
+        H, g = point_to_plane_system(q[ok], n, residual, weights, centre, radius)
+        B = np.eye(6) if basis is None else basis
+        if B.shape[1] == 0:
+            break
+        Hb = B.T @ H @ B
+        x = -B @ np.linalg.lstsq(Hb, B.T @ g, rcond=None)[0]
+        T = twist_transform(x, centre, radius) @ T
+        if np.linalg.norm(x) < 1e-6:
+            break
+    return T
+
+
+def correction_size(T: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
+    """(mm the correction moves `centre`, rotation angle in degrees)."""
+    return float(np.linalg.norm(T[:3, :3] @ centre + T[:3, 3] - centre) * 1000), rotation_angle_deg(T[:3, :3])
 
 
 def pair_agreement(
@@ -122,49 +235,55 @@ def pair_agreement(
     cam_b: str,
     max_distance: float,
     min_overlap: int = 50,
+    min_constraint: float = 0.1,
 ) -> PairAgreement:
-    """Agreement of one view's cloud (source, a) with its neighbour's (target, b)."""
+    """Agreement of one view's cloud (source, a) with its neighbour's (target, b).
+
+    The correction is solved only in the directions the overlap constrains
+    (see observable_basis); min_constraint=0 gives plain robust 6-dof ICP."""
     nan = float("nan")
     if len(source.points) == 0 or len(target.points) == 0:
         return PairAgreement(cam_a, cam_b, 0, nan, nan, nan, nan, 0.0)
     src_pts = np.asarray(source.points)  # (N_a, 3)
     tgt_pts = np.asarray(target.points)  # (N_b, 3)
+    tgt_normals = np.asarray(target.normals)  # (N_b, 3)
     tree = cKDTree(tgt_pts)
     nn, idx = tree.query(src_pts, k=1, distance_upper_bound=max_distance)
     overlap = np.isfinite(nn)  # a neighbour within max_distance
     n_overlap = int(overlap.sum())
     if n_overlap < min_overlap:
         return PairAgreement(cam_a, cam_b, n_overlap, nan, nan, nan, nan, 0.0)
-    result = reg.registration_icp(
-        source,
-        target,
-        float(max_distance),
-        np.eye(4),
-        reg.TransformationEstimationPointToPlane(),
-        reg.ICPConvergenceCriteria(relative_fitness=1e-9, relative_rmse=1e-9, max_iteration=100),
-    )
-    T = np.asarray(result.transformation)
-    # after ICP: RMS point-to-plane residual of the correspondences ICP used
+    over = src_pts[overlap]  # (K, 3)
+    normals = tgt_normals[idx[overlap]]  # (K, 3)
+    off_plane = ((over - tgt_pts[idx[overlap]]) * normals).sum(axis=1)
+    centre = over.mean(axis=0)
+    radius = float(np.sqrt(((over - centre) ** 2).sum(axis=1).mean()))
+    H, _ = point_to_plane_system(over, normals, off_plane, np.ones(n_overlap), centre, radius)
+    keep, drop = observable_basis(H, min_constraint)
+    T = robust_point_to_plane_icp(src_pts, tree, tgt_pts, tgt_normals, max_distance, centre, radius, keep)
+    T_full = robust_point_to_plane_icp(src_pts, tree, tgt_pts, tgt_normals, max_distance, centre, radius, None)
+    # after ICP: RMS point-to-plane residual of the correspondences
     moved_pts = src_pts @ T[:3, :3].T + T[:3, 3]
     nn_after, idx_after = tree.query(moved_pts, k=1, distance_upper_bound=max_distance)
     used = np.isfinite(nn_after)
-    residual = ((moved_pts[used] - tgt_pts[idx_after[used]]) * np.asarray(target.normals)[idx_after[used]]).sum(1)
-    # misalignment before ICP: distance to the neighbour's tangent plane, which
-    # unlike the raw neighbour distance does not grow with the point spacing
-    normals = np.asarray(target.normals)[idx[overlap]]
-    off_plane = np.abs(((src_pts[overlap] - tgt_pts[idx[overlap]]) * normals).sum(axis=1))
-    centre = src_pts[overlap].mean(axis=0)
-    moved = T[:3, :3] @ centre + T[:3, 3]
+    residual = ((moved_pts[used] - tgt_pts[idx_after[used]]) * tgt_normals[idx_after[used]]).sum(1)
+    mm, deg = correction_size(T, centre)
+    full_mm, full_deg = correction_size(T_full, centre)
     return PairAgreement(
         cam_a=cam_a,
         cam_b=cam_b,
         overlap_points=n_overlap,
-        median_distance_mm=float(np.median(off_plane) * 1000),
-        icp_rmse_mm=float(np.sqrt(np.mean(residual**2)) * 1000) if used.any() else float("nan"),
-        correction_rotation_deg=rotation_angle_deg(T[:3, :3]),
-        correction_translation_mm=float(np.linalg.norm(moved - centre) * 1000),
-        fitness=float(result.fitness),
+        median_distance_mm=float(np.median(np.abs(off_plane)) * 1000),
+        icp_rmse_mm=float(np.sqrt(np.mean(residual**2)) * 1000) if used.any() else nan,
+        correction_rotation_deg=deg,
+        correction_translation_mm=mm,
+        fitness=float(used.mean()),
         correction=T.copy(),
+        observable_rotation_deg=deg,
+        observable_translation_mm=mm,
+        full_rotation_deg=full_deg,
+        full_translation_mm=full_mm,
+        unobservable=describe_directions(drop),
     )
 
 
@@ -173,21 +292,26 @@ def check_calibration(
     names: list[str],
     camera_centers,
     max_distance: float = 0.05,
-    voxel_size: float = 0.01,
+    voxel_size: float = 0.02,
     pairs: list[tuple[int, int]] | None = None,
+    min_constraint: float = 0.1,
 ) -> list[PairAgreement]:
     """ICP agreement of each neighbouring pair of views' world clouds (N_c, 3).
 
     Pairs come from `neighbour_pairs(camera_centers)` unless given. For each
-    pair (a, b), a's cloud is registered onto b's (point-to-plane ICP in world
-    coordinates, from identity, correspondences up to max_distance metres).
+    pair (a, b), a's cloud is registered onto b's (robust point-to-plane ICP in
+    world coordinates, from identity, correspondences up to max_distance metres),
+    solving only the directions the overlap constrains (see pair_agreement).
+    For a static scene, pass each camera's points of several frames together:
+    more points beat the depth noise.
     """
     if len(points_per_view) != len(names):
         raise ValueError(f"check_calibration: {len(points_per_view)} point clouds but {len(names)} names")
     if pairs is None:
         pairs = neighbour_pairs(camera_centers)
     clouds = [_view_cloud(p, voxel_size, n) for p, n in zip(points_per_view, names)]
-    return [pair_agreement(clouds[a], clouds[b], names[a], names[b], max_distance) for a, b in pairs]
+    return [pair_agreement(clouds[a], clouds[b], names[a], names[b], max_distance, min_constraint=min_constraint)
+            for a, b in pairs]
 
 
 def format_agreement(results: list[PairAgreement], warn_mm: float = 10.0, warn_deg: float = 1.0) -> str:

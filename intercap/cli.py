@@ -81,13 +81,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("synth", help="write a synthetic session with ground truth")
-    p.add_argument("out", help="session folder to create")
-    try:
-        from tools.synth import build_arg_parser
+    from tools.synth import build_arg_parser
 
-        build_arg_parser(p)
-    except ImportError:  # tools/ not installed: the subcommand explains itself when run
-        pass
+    build_arg_parser(p)  # adds OUT and the generator's options
     p.set_defaults(func=_cmd_synth)
     return parser
 

@@ -44,10 +44,40 @@ class PrepareConfig:
 
 
 @dataclass
+class ObjectConfig:
+    """Per-frame object tracking by silhouette + depth rendering (E_O)."""
+
+    use_session_masks: bool = True  # False: derive masks from depth even when the session has them
+    crop_size: int = 64  # render grid (pixels) of the crop around the object in each view
+    crop_margin: float = 0.25  # crop grows this fraction beyond the object and its mask
+    sigma_px: float = 0.7  # silhouette edge softness (render-grid pixels)
+    w_silhouette: float = 1.0  # l_segm
+    w_depth: float = 1.0  # l_depth
+    depth_scale_m: float = 0.03  # Geman-McClure scale of depth residuals
+    occluder_margin_m: float = 0.03  # measured this much in front of the object = occluded there
+    iterations: int = 30
+    init_iterations: int = 15  # per hypothesis, before the best is refined
+    init_global_tries: int = 3  # FPFH RANSAC registrations among the hypotheses
+    init_keep: int = 6  # registration hypotheses (best ICP fitness) scored by E_O
+    init_refine: int = 2  # of those, the lowest-E_O ones that get a short fit
+    lr_rotation: float = 0.02
+    lr_translation: float = 0.004
+    voxel_size_m: float = 0.005
+    min_mask_px: int = 30
+    min_views: int = 1  # views that must see the object for a pose
+    min_confidence: float = 0.5  # mean silhouette IoU below this = not trusted
+    reinit_energy_ratio: float = 4.0  # E_O above this times its recent median triggers re-initialisation
+    background_frames: int = 30
+    checkpoint_every: int = 10
+    overlay_every: int = 10
+    seed: int = 0
+
+
+@dataclass
 class RunConfig:
     """What `intercap run` does."""
 
-    stages: list[str] = field(default_factory=lambda: ["prepare"])
+    stages: list[str] = field(default_factory=list)  # empty: every built stage
     device: str = "cpu"
     force: bool = False  # recompute stages whose output is already saved
 
@@ -56,6 +86,7 @@ class RunConfig:
 class Config:
     body_model: BodyModelConfig = field(default_factory=BodyModelConfig)
     prepare: PrepareConfig = field(default_factory=PrepareConfig)
+    object: ObjectConfig = field(default_factory=ObjectConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
 

@@ -3,7 +3,9 @@
 A stage is finished when OUT/<stage>/DONE.json exists and records the same
 inputs (the session, the stage's config section and those of the stages it
 depends on). A rerun skips finished stages and redoes a stage whose settings
-changed, and everything after it. Only stages that exist are run: asking for
+changed, and everything after it. A stage that died halfway resumes from its
+own checkpoints when its settings are unchanged (OUT/<stage>/STARTED.json
+records them), and starts clean otherwise. Only stages that exist are run: asking for
 one that is not built yet is an error, never a fake output.
 """
 from __future__ import annotations
@@ -11,6 +13,7 @@ from __future__ import annotations
 import hashlib
 import json
 import logging
+import shutil
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -38,8 +41,15 @@ def _run_prepare(session, cfg, out_dir, progress):
     return prepare.run(session, cfg, out_dir, progress=progress)
 
 
+def _run_object(session, cfg, out_dir, progress):
+    from intercap import object as object_stage
+
+    return object_stage.run(session, cfg, out_dir, progress=progress)
+
+
 STAGES: dict[str, Stage] = {
     "prepare": Stage("prepare", _run_prepare, ("prepare",)),
+    "object": Stage("object", _run_object, ("object",)),
 }
 
 
@@ -102,6 +112,12 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
                 continue
             log.info("%s: settings or inputs changed since the saved run, redoing", name)
         marker.unlink(missing_ok=True)
+        started = out_dir / name / "STARTED.json"
+        if cfg.run.force or (started.exists() and read_json(started).get("fingerprint") != fingerprint):
+            shutil.rmtree(out_dir / name, ignore_errors=True)  # partial work of other settings is not resumed
+        elif started.exists():
+            log.info("%s: resuming the unfinished run", name)
+        write_json(started, {"stage": name, "fingerprint": fingerprint})
         log.info("%s: running", name)
         start = time.perf_counter()
         figures = stage.run(session, cfg, out_dir, progress)

@@ -124,10 +124,11 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     write_json(stage_dir / "ground.json", {**plane.to_dict(), "source": source})
     log.info("ground plane (%s): normal %s, rmse %.1f mm", source, np.round(plane.normal, 4), plane.rmse_m * 1e3)
 
-    per_frame = []
     names = [c.name for c in session.cameras]
     centers = cameras.centers.numpy()
     checked = spread_frames(session.frame_ids, pcfg.calib_frames)
+    fused = [[] for _ in names]  # per camera, its clouds over the checked frames (the scene is static)
+    used_frames = 0
     for frame_id in tqdm(checked, desc="prepare: calibration check", disable=not progress):
         views = clouds.frame(int(frame_id))
         if pcfg.save_clouds:
@@ -138,18 +139,27 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
             )
         if sum(len(v["points"]) > 0 for v in views) < 2:
             continue
-        per_frame.append(
-            check_calibration([v["points"] for v in views], names, centers,
-                              max_distance=pcfg.icp_max_distance_m, voxel_size=pcfg.voxel_size_m)
-        )
+        used_frames += 1
+        for c, v in enumerate(views):
+            fused[c].append(v["points"])
+    per_frame = []
+    if used_frames:
+        # one ICP per pair on the clouds fused over frames: more points beat the depth noise
+        per_frame.append(check_calibration([np.concatenate(f) for f in fused], names, centers,
+                                           max_distance=pcfg.icp_max_distance_m,
+                                           voxel_size=max(2 * pcfg.voxel_size_m, 0.02)))
     pairs = median_agreement(per_frame) if per_frame else []
+    for row, result in zip(pairs, per_frame[0] if per_frame else []):
+        row["frames"] = used_frames
+        row["unobservable"] = result.unobservable
+        row["full_translation_mm"], row["full_rotation_deg"] = result.full_translation_mm, result.full_rotation_deg
     flagged = [p for p in pairs if p["correction_translation_mm"] > pcfg.calib_warn_mm
                or p["correction_rotation_deg"] > pcfg.calib_warn_deg]
     write_json(stage_dir / "calibration_check.json", {"frames": [int(f) for f in checked], "pairs": pairs,
                                                       "warn_mm": pcfg.calib_warn_mm, "flagged": flagged})
     if per_frame:
-        log.info("calibration check (median over %d frames)\n%s", len(per_frame),
-                 format_agreement(per_frame[len(per_frame) // 2], warn_mm=pcfg.calib_warn_mm))
+        log.info("calibration check (clouds fused over %d frames)\n%s", used_frames,
+                 format_agreement(per_frame[0], warn_mm=pcfg.calib_warn_mm, warn_deg=pcfg.calib_warn_deg))
     for p in flagged:
         log.warning("cameras %s and %s disagree by %.1f mm / %.2f deg: check the calibration",
                     p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["correction_rotation_deg"])

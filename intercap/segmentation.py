@@ -9,37 +9,39 @@ best overlaps the rendering of the object's predicted pose
 """
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 
 
-def background_depth(depth_stack: np.ndarray, percentile: float = 90.0, min_valid: int = 3) -> np.ndarray:
+def background_depth(depth_stack: np.ndarray, percentile: float = 90.0, min_valid_fraction: float = 0.75) -> np.ndarray:
     """Per-pixel background depth (H, W) from depth maps (T, H, W) in metres.
 
     Moving people and objects are nearer than the background, so a high
-    percentile of the valid samples is the background; pixels with fewer than
-    `min_valid` measurements are 0 (unknown)."""
+    percentile of the valid samples is the background. A pixel that reads no
+    measurement in many frames (beyond the sensor's range, or a dark far
+    surface) has an unknown background, 0: whatever is measured there is in
+    front of it. Sparse dropouts (edges, noise) stay below `min_valid_fraction`."""
     stack = np.asarray(depth_stack, dtype=np.float32)
     valid = stack > 0
     masked = np.where(valid, stack, np.nan)
-    with np.errstate(all="ignore"):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)
-            background = np.nanpercentile(masked, percentile, axis=0)
-    background[valid.sum(0) < min_valid] = 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels
+        background = np.nanpercentile(masked, percentile, axis=0)
+    background[valid.mean(0) < min_valid_fraction] = 0
     return np.nan_to_num(background, nan=0.0).astype(np.float32)
 
 
 def foreground_mask(depth: np.ndarray, background: np.ndarray, margin_m: float = 0.04, relative: float = 0.015) -> np.ndarray:
     """Pixels clearly in front of the background, (H, W) bool.
 
-    The margin grows with depth (Kinect noise does); unknown background counts
-    as far, missing depth as background."""
+    The margin grows with depth (Kinect noise does); an unknown background
+    (0) counts as infinitely far, a missing measurement as background."""
     valid = depth > 0
-    far = np.where(background > 0, background, np.inf)
-    return valid & (depth < far - (margin_m + relative * far))
+    known = background > 0
+    threshold = np.where(known, background - (margin_m + relative * background), np.inf)
+    return valid & (depth < threshold)
 
 
 def clean_mask(mask: np.ndarray, open_px: int = 1) -> np.ndarray:

@@ -187,3 +187,41 @@ def test_neighbour_pairs_ring_arc_and_pair():
     assert {frozenset(p) for p in arc} == {frozenset(p) for p in [(1, 2), (2, 0), (0, 5), (5, 3), (3, 4)]}
     assert neighbour_pairs(ring_centers([0, 90])) == [(0, 1)]
     assert neighbour_pairs(ring_centers([0])) == []
+
+
+def planar_room_views(seed=0, noise=0.010, n_box=6000):
+    """Two views of a floor (z=0) and a wall (x=2) with a little clutter (one small
+    box, ~5% of points), each sampled independently with `noise` along its viewing
+    rays, as depth noise is: planes dominate the overlap."""
+    rng = np.random.default_rng(seed)
+    centers = np.array([[-1.5, -2.5, 1.8], [-1.5, 2.5, 1.8]])
+
+    def sample(center):
+        floor = np.column_stack([rng.uniform(-1.5, 2.0, 40000), rng.uniform(-2.0, 2.0, 40000), np.zeros(40000)])
+        wall = np.column_stack([np.full(20000, 2.0), rng.uniform(-2.0, 2.0, 20000), rng.uniform(0.0, 2.5, 20000)])
+        box = box_surface(rng, np.array([0.3, 0.0, 0.0]), np.array([0.4, 0.3, 0.5]), 0.4, n_box)
+        to_centre = np.array([0.3, 0.0, 0.25])
+        facing = ((box - to_centre) * (center - box)).sum(1) > 0  # roughly: the faces turned to this view
+        pts = np.concatenate([floor, wall, box[facing]])
+        rays = pts - center
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        return pts + rays * rng.normal(0, noise, (len(pts), 1))
+
+    return [sample(c) for c in centers], centers
+
+
+def test_check_calibration_planar_scene_exact_is_not_flagged():
+    views, centers = planar_room_views()
+    good = check_calibration(views, ["a", "b"], centers)[0]
+    print(f"planar exact: observable {good.correction_translation_mm:.2f} mm {good.correction_rotation_deg:.3f} deg, "
+          f"full 6-dof {good.full_translation_mm:.2f} mm {good.full_rotation_deg:.3f} deg, "
+          f"median {good.median_distance_mm:.2f} mm, unobservable {good.unobservable}")
+    assert good.correction_translation_mm < 5.0 and good.correction_rotation_deg < 0.3
+    assert good.observable_translation_mm == good.correction_translation_mm
+    assert "NO OVERLAP" not in format_agreement([good]) and format_agreement([good]).splitlines()[2].endswith("ok")
+    # the floor's normal translation is always observable: a 20 mm drop of view a is found and flagged
+    dropped = check_calibration([views[0] - [0, 0, 0.020], views[1]], ["a", "b"], centers)[0]
+    print(f"planar, view a 20 mm low: {dropped.correction_translation_mm:.2f} mm {dropped.correction_rotation_deg:.3f} deg")
+    assert abs(dropped.correction_translation_mm - 20.0) < 3.0 and dropped.correction_rotation_deg < 0.3
+    assert abs(dropped.correction[2, 3] - 0.020) < 0.003
+    assert format_agreement([dropped]).splitlines()[2].endswith("CHECK CALIBRATION")

@@ -20,7 +20,7 @@ def angle_deg(a, b):
 @pytest.fixture(scope="module")
 def prepared(tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
-    cfg = load_config(overrides=["prepare.calib_frames=2", "prepare.ground_frames=3"])
+    cfg = load_config(overrides=["prepare.calib_frames=2", "prepare.ground_frames=3", "run.stages=prepare"])
     metrics = run_pipeline(SAMPLE, out, cfg, progress=False)
     return out, cfg, metrics
 
@@ -60,7 +60,7 @@ def test_resume_skips_done_stage_and_redoes_changed_one(prepared):
     before = marker.read_text()
     run_pipeline(SAMPLE, out, cfg, progress=False)
     assert marker.read_text() == before  # skipped: the marker (with its finish time) is untouched
-    changed = load_config(overrides=["prepare.calib_frames=1", "prepare.ground_frames=3"])
+    changed = load_config(overrides=["prepare.calib_frames=1", "prepare.ground_frames=3", "run.stages=prepare"])
     run_pipeline(SAMPLE, out, changed, progress=False)
     assert json.loads(marker.read_text())["fingerprint"] != json.loads(before)["fingerprint"]
 

@@ -85,7 +85,7 @@ def main(argv=None) -> None:
         if session is None:
             from tools.synth import SynthConfig, generate_session
 
-            cfg = SynthConfig(num_cameras=args.cameras, width=args.width, height=args.height, num_frames=args.frames)
+            cfg = SynthConfig(cameras=args.cameras, width=args.width, height=args.height, frames=args.frames, quiet=True)
             t0 = time.perf_counter()
             session = generate_session(cfg, work / "session")
             print(f"generated {args.cameras} views x {args.frames} frames at {args.width}x{args.height} "

@@ -4,11 +4,13 @@ For a 12-face box, a 512-face cylinder and the synthetic objects (box 2048,
 cup 1664, chair 2400 faces), in 640x576 views with Azure-Kinect-like rational
 distortion, object about 2 m away: median time of one forward pass (autograd
 on) and of forward + backward of an E_O-like loss, for 1 view and for 4 views
-in one call, at the chosen crop size; plus peak extra memory of a 4-view
-forward + backward (CPU: peak resident set growth via /proc; CUDA: peak
-allocated).
+in one call, at each crop size; plus peak extra memory of a 4-view forward +
+backward (CPU: growth of the peak resident set, /proc; CUDA: peak allocated).
 
-    PYTHONPATH=. python tools/bench_rendering.py [--size 96] [--sigma 0.6] [--device cpu] [--repeats 30]
+On CPU the times are thread CPU time with `--threads 1` (robust when other
+processes share the machine), wall-clock time otherwise; CUDA: wall clock.
+
+    PYTHONPATH=. python tools/bench_rendering.py [--sizes 64,96] [--sigma 0.6] [--device cpu] [--threads 1]
 """
 from __future__ import annotations
 
@@ -83,31 +85,12 @@ def _peak_rss_kb() -> tuple[int, int]:
     return int(re.search(r"VmHWM:\s+(\d+)", s).group(1)), int(re.search(r"VmRSS:\s+(\d+)", s).group(1))
 
 
-def _reset_peak(device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-        torch.cuda.reset_peak_memory_stats()
-    else:
-        try:
-            open("/proc/self/clear_refs", "w").write("5")
-        except OSError:
-            pass
-
-
-def _peak_mb(device, base: int) -> float:
-    if device.type == "cuda":
-        torch.cuda.synchronize()
-        return (torch.cuda.max_memory_allocated() - base) / 2**20
-    hwm, _ = _peak_rss_kb()
-    return (hwm - base) / 1024
-
-
 def _sync(device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize()
 
 
-def bench_one(mesh, cameras, size, sigma, repeats, device, dtype) -> dict:
+def bench_one(mesh, cameras, size, sigma, repeats, device, dtype, clock=time.perf_counter) -> dict:
     """Timings (ms, median) for one mesh; each call renders all of `cameras`."""
     topo = MeshTopology.from_faces(torch.as_tensor(mesh.faces)).to(device)
     v_obj = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype, device=device)
@@ -115,8 +98,9 @@ def bench_one(mesh, cameras, size, sigma, repeats, device, dtype) -> dict:
     trans = torch.tensor([0.0, 0.0, 0.8], dtype=dtype, device=device)
     verts0 = (v_obj @ axis_angle_matrix(rot).T + trans)[None]
     crops = object_crops(verts0, cameras, size, margin=0.15)
-    with torch.no_grad():  # target: the object moved by 1 cm and 3 degrees
-        target = render(verts0 + torch.tensor([0.01, 0.0, 0.0], dtype=dtype, device=device), topo, cameras, crops, size, sigma)
+    with torch.no_grad():  # target: the object moved by 1 cm
+        moved = verts0 + torch.tensor([0.01, 0.0, 0.0], dtype=dtype, device=device)
+        target = render(moved, topo, cameras, crops, size, sigma)
     r = rot.clone().requires_grad_(True)
     t = trans.clone().requires_grad_(True)
 
@@ -124,7 +108,8 @@ def bench_one(mesh, cameras, size, sigma, repeats, device, dtype) -> dict:
         verts = (v_obj @ axis_angle_matrix(r).T + t)[None]
         out = render(verts, topo, cameras, crops, size, sigma)
         mask = target.coverage & out.coverage
-        return ((out.silhouette - target.silhouette) ** 2).sum() + (((out.depth - target.depth) * mask) ** 2).sum() * 100
+        e_s = ((out.silhouette - target.silhouette) ** 2).sum()
+        return e_s + 100 * (((out.depth - target.depth) * mask) ** 2).sum()
 
     def timed(fn) -> float:
         for _ in range(3):
@@ -132,10 +117,10 @@ def bench_one(mesh, cameras, size, sigma, repeats, device, dtype) -> dict:
         times = []
         for _ in range(repeats):
             _sync(device)
-            t0 = time.perf_counter()
+            t0 = clock()
             fn()
             _sync(device)
-            times.append(time.perf_counter() - t0)
+            times.append(clock() - t0)
         return 1000 * float(np.median(times))
 
     def fwd_bwd():
@@ -144,41 +129,75 @@ def bench_one(mesh, cameras, size, sigma, repeats, device, dtype) -> dict:
 
     fwd = timed(forward)
     fb = timed(fwd_bwd)
+    return dict(fwd=fwd, fwd_bwd=fb, covered=int(target.coverage.sum()), run=fwd_bwd)
+
+
+def peak_memory_mb(run, device) -> float:
+    """Peak extra memory (MB) of one call of `run`. CUDA: peak allocated. CPU: growth of
+    the peak resident set, with glibc told to serve every block over 64 KB by mmap
+    (returned to the system when freed), so the peak reflects live tensors rather
+    than what the allocator had cached from earlier calls."""
     if device.type == "cuda":
+        torch.cuda.synchronize()
         base = torch.cuda.memory_allocated()
-    else:
+        torch.cuda.reset_peak_memory_stats()
+        run()
+        torch.cuda.synchronize()
+        return (torch.cuda.max_memory_allocated() - base) / 2**20
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 65536)  # M_MMAP_THRESHOLD (also stops glibc raising it dynamically)
+        run()  # settle with this allocation policy
+        libc.malloc_trim(0)
         base = _peak_rss_kb()[1]
-    _reset_peak(device)
-    fwd_bwd()
-    peak = _peak_mb(device, base)
-    return dict(fwd=fwd, fwd_bwd=fb, peak_mb=peak, covered=int(target.coverage.sum()))
+        open("/proc/self/clear_refs", "w").write("5")  # reset the peak (VmHWM) to the current RSS
+    except (OSError, AttributeError):
+        return float("nan")
+    run()
+    return (_peak_rss_kb()[0] - base) / 1024
 
 
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--size", type=int, default=96, help="output crop size (square), pixels")
+    ap.add_argument("--sizes", default="64,96", help="output crop sizes (square), pixels, comma separated")
     ap.add_argument("--sigma", type=float, default=0.6)
     ap.add_argument("--device", default=None, help="cpu or cuda (default: both if CUDA exists)")
+    ap.add_argument("--threads", type=int, default=1, help="torch CPU threads (0: leave torch's default)")
     ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--float64", action="store_true")
     args = ap.parse_args(argv)
+    if args.threads > 0:
+        torch.set_num_threads(args.threads)
     dtype = torch.float64 if args.float64 else torch.float32
     devices = [args.device] if args.device else (["cpu", "cuda"] if torch.cuda.is_available() else ["cpu"])
     meshes = bench_meshes()
-    size = (args.size, args.size)
-    print(f"torch {torch.__version__}, threads {torch.get_num_threads()}, crop {args.size}x{args.size}, "
-          f"sigma {args.sigma}, {IMAGE_W}x{IMAGE_H} views, {dtype}")
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} CPU thread(s), sigma {args.sigma}, "
+          f"{IMAGE_W}x{IMAGE_H} views, {dtype}")
     for dev_name in devices:
         device = torch.device(dev_name)
+        cpu_time = device.type == "cpu" and torch.get_num_threads() == 1
+        clock = time.thread_time if cpu_time else time.perf_counter
         cams4 = bench_cameras(4, dtype=dtype, device=device)
         cams1 = cams4.select([0])
-        print(f"\n[{dev_name}]  times in ms (median of {args.repeats})")
-        print(f"{'mesh':<13}{'faces':>6}{'fwd 1v':>9}{'f+b 1v':>9}{'fwd 4v':>9}{'f+b 4v':>9}{'f+b/view':>10}{'peak MB 4v':>12}{'px/view':>9}")
-        for name, mesh in meshes.items():
-            one = bench_one(mesh, cams1, size, args.sigma, args.repeats, device, dtype)
-            four = bench_one(mesh, cams4, size, args.sigma, args.repeats, device, dtype)
-            print(f"{name:<13}{len(mesh.faces):>6}{one['fwd']:>9.2f}{one['fwd_bwd']:>9.2f}{four['fwd']:>9.2f}"
-                  f"{four['fwd_bwd']:>9.2f}{four['fwd_bwd'] / 4:>10.2f}{four['peak_mb']:>12.1f}{four['covered'] / 4:>9.0f}")
+        runs = {}
+        for crop in (int(x) for x in args.sizes.split(",")):
+            size = (crop, crop)
+            print(f"\n[{dev_name}] crop {crop}x{crop}: ms ({'thread CPU time' if cpu_time else 'wall clock'}, "
+                  f"median of {args.repeats})")
+            print(f"{'mesh':<13}{'faces':>6}{'fwd 1v':>9}{'f+b 1v':>9}{'fwd 4v':>9}{'f+b 4v':>9}"
+                  f"{'f+b/view':>10}{'px/view':>9}")
+            for name, mesh in meshes.items():
+                one = bench_one(mesh, cams1, size, args.sigma, args.repeats, device, dtype, clock)
+                four = bench_one(mesh, cams4, size, args.sigma, args.repeats, device, dtype, clock)
+                runs[(crop, name)] = four["run"]
+                print(f"{name:<13}{len(mesh.faces):>6}{one['fwd']:>9.2f}{one['fwd_bwd']:>9.2f}{four['fwd']:>9.2f}"
+                      f"{four['fwd_bwd']:>9.2f}{four['fwd_bwd'] / 4:>10.2f}{four['covered'] / 4:>9.0f}")
+        # memory last: on CPU it changes the allocator's policy for the rest of the process
+        print(f"\n[{dev_name}] peak extra memory of one 4-view forward + backward, MB")
+        for (crop, name), run in runs.items():
+            print(f"crop {crop:<4} {name:<13}{peak_memory_mb(run, device):8.1f}")
 
 
 if __name__ == "__main__":

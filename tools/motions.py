@@ -10,12 +10,15 @@ vertices and keypoints, object poses and contact labels:
    arms counter-swing);
 2. the root follows the stance foot (no foot skating) and is lifted so the
    lowest vertex touches the floor z = 0;
-3. the object's track is planned from its anchors (fixed in the world or
-   carried in the person's heading frame);
-4. a few L-BFGS steps of the body model bend the arms (and a little the spine)
-   so each palm lies on its grasp point with the palm facing the surface;
-5. fingers close until they touch the object (per finger, by testing curl
-   amounts against the object's signed distance).
+3. the object's track is planned from its anchors (fixed in the world,
+   carried in the person's heading frame, or held at the mouth);
+4. L-BFGS on the body model bends the arms (and a little the spine) so each
+   palm lies on its grasp point, facing the surface, with the hand kept out of
+   the object and above the floor (solved at <= 5 Hz, spread, polished per frame);
+5. per-finger curls (and the thumb) close until the fingers touch the object
+   without sinking in (a signed-distance grid of the object, differentiable).
+While the hands hold it, the object therefore moves rigidly with them: its pose
+is the plan and the hands follow it (the measured gap is reported).
 
 The bone names and axes are anny's (local-ref parameterisation, axes aligned
 with the model axes at rest; the person faces -y with left on +x):
@@ -39,7 +42,7 @@ SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair")
 
 # Bones the IK may move, with the weight of their pull back to the scripted pose.
 IK_BONES = {
-    "spine03": 40.0, "spine02": 40.0, "spine01": 40.0,
+    "spine03": 120.0, "spine02": 120.0, "spine01": 120.0,
     "clavicle.L": 10.0, "clavicle.R": 10.0,
     "upperarm01.L": 0.5, "upperarm01.R": 0.5, "upperarm02.L": 2.0, "upperarm02.R": 2.0,
     "lowerarm01.L": 0.5, "lowerarm01.R": 0.5, "lowerarm02.L": 1.0, "lowerarm02.R": 1.0,
@@ -55,12 +58,14 @@ FINGER_BONE_PREFIX = ["finger1", "finger2", "finger3", "finger4", "finger5"]  # 
 class ObjectKey:
     """The object's pose at time `t`: `rel` (4x4) in the person's heading frame,
     taken at time `t` when `frame == 'body'` (carried) or at time `ref` when
-    `frame == 'world'` (resting where it was put)."""
+    `frame == 'world'` (resting where it was put); `frame == 'head'`: the
+    heading frame moved to the nose (brought to the mouth)."""
 
     t: float
     frame: str
     rel: np.ndarray
     ref: float = 0.0
+    on_floor: bool = False  # rest on the floor: the height becomes the object's own half height
 
 
 @dataclass
@@ -93,14 +98,8 @@ class Script:
     props: list = field(default_factory=list)
 
 
-def _pose(t=0.0, z=0.0, y=0.0):
-    """A 4x4 translation in the heading frame (x right, y forward, z up)."""
-    T = np.eye(4)
-    T[:3, 3] = (t, y, z)
-    return T
-
-
 def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
+    """A 4x4 pose in the heading frame (x right, y forward, z up, metres)."""
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
     T[:3, 3] = (x, y, z)
@@ -157,9 +156,9 @@ def pick_place() -> Script:
     floor = _rel(0.0, 0.47, 0.075)  # box centre: 0.47 m ahead, lying on the floor
     carry_rel = _rel(0.0, 0.40, 0.88)
     object_keys = [
-        ObjectKey(0.0, "world", floor, ref=2.7), ObjectKey(3.0, "world", floor, ref=2.7),
+        ObjectKey(0.0, "world", floor, ref=2.7, on_floor=True), ObjectKey(3.0, "world", floor, ref=2.7, on_floor=True),
         ObjectKey(3.8, "body", carry_rel), ObjectKey(5.0, "body", carry_rel),
-        ObjectKey(5.8, "world", floor, ref=5.8), ObjectKey(7.2, "world", floor, ref=5.8),
+        ObjectKey(5.8, "world", floor, ref=5.8, on_floor=True), ObjectKey(7.2, "world", floor, ref=5.8, on_floor=True),
     ]
     return Script("pick_place", 7.2, phases, "box", ("left", "right"), pose_keys, pitch_keys, yaw_keys,
                   walk_keys, reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "put_down"))
@@ -186,12 +185,15 @@ def lift_drink() -> Script:
     close_keys = [(0.0, 0.0), (1.5, 0.0), (1.8, 1.0), (4.6, 1.0), (4.8, 0.0)]
     table_h = 0.74
     on_table = _rel(0.12, 0.42, table_h + 0.05)
-    at_mouth = _rel(0.05, 0.16, 1.43, rotvec=(0.0, 0.0, 0.3))
-    tilted = _rel(0.04, 0.14, 1.45, rotvec=(-0.7, 0.0, 0.3))
+    # relative to the nose: the tilted cup's near rim touches the lips (4-5 cm below the nose)
+    # (turned 0.6 rad about the vertical so the right hand holds it from the front-right)
+    turn = Rotation.from_rotvec((0.0, 0.0, 0.6))
+    at_mouth = _rel(0.01, 0.12, -0.12, rotvec=turn.as_rotvec())
+    tilted = _rel(0.0, 0.068, -0.066, rotvec=(Rotation.from_rotvec((0.6, 0.0, 0.0)) * turn).as_rotvec())
     object_keys = [
         ObjectKey(0.0, "world", on_table, ref=0.0), ObjectKey(1.8, "world", on_table, ref=0.0),
-        ObjectKey(2.7, "body", at_mouth), ObjectKey(3.0, "body", tilted), ObjectKey(3.4, "body", tilted),
-        ObjectKey(3.7, "body", at_mouth), ObjectKey(4.6, "world", on_table, ref=0.0),
+        ObjectKey(2.7, "head", at_mouth), ObjectKey(3.0, "head", tilted), ObjectKey(3.4, "head", tilted),
+        ObjectKey(3.7, "head", at_mouth), ObjectKey(4.6, "world", on_table, ref=0.0),
         ObjectKey(5.8, "world", on_table, ref=0.0),
     ]
     props = [("table", "table", _rel(0.05, 0.55, table_h / 2))]
@@ -214,9 +216,9 @@ def push_chair() -> Script:
     gap_keys = [(0.0, 0.10), (0.5, 0.10), (1.2, 0.0), (3.9, 0.0), (4.4, 0.10)]
     close_keys = [(0.0, 0.0), (1.2, 0.0), (1.5, 1.0), (3.9, 1.0), (4.1, 0.0)]
     behind = _rel(0.0, 0.62, 0.425)
-    object_keys = [ObjectKey(0.0, "world", behind, ref=1.5), ObjectKey(1.5, "world", behind, ref=1.5),
-                   ObjectKey(1.50001, "body", behind), ObjectKey(3.9, "body", behind),
-                   ObjectKey(3.90001, "world", behind, ref=3.9), ObjectKey(5.4, "world", behind, ref=3.9)]
+    object_keys = [ObjectKey(t, frame, behind, ref=ref, on_floor=True) for t, frame, ref in (
+        (0.0, "world", 1.5), (1.5, "world", 1.5), (1.50001, "body", 0.0), (3.9, "body", 0.0),
+        (3.90001, "world", 3.9), (5.4, "world", 3.9))]
     return Script("push_chair", 5.4, phases, "chair", ("left", "right"), pose_keys, pitch_keys, yaw_keys,
                   walk_keys, reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "push"))
 
@@ -320,8 +322,10 @@ def gait_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray,
     the amplitude follows its magnitude: thighs swing +-0.38 rad, the knee flexes
     in swing, the ankle lifts the toes, arms counter-swing, the pelvis rotates."""
     intensity = eased_scalar(script.walk_keys, times)  # (T,)
-    dt = np.diff(times, prepend=times[0])
-    phase = 2 * np.pi * cadence_hz * np.cumsum(intensity * dt)
+    fine = np.linspace(0.0, max(float(times.max()), 1e-3), 2000)  # integrate the phase finely, whatever the frame rate
+    phase_fine = 2 * np.pi * cadence_hz * np.concatenate(
+        [[0.0], np.cumsum(eased_scalar(script.walk_keys, fine)[1:] * np.diff(fine))])
+    phase = np.interp(times, fine, phase_fine)
     amp = np.abs(intensity)
     index = {n: i for i, n in enumerate(body_joint_names)}
     out = np.zeros((len(times), len(body_joint_names), 3))
@@ -384,21 +388,30 @@ def stance_anchored_root(feet_l: np.ndarray, feet_r: np.ndarray) -> np.ndarray:
     return np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
 
 
-def object_track(script: Script, heading: np.ndarray, times: np.ndarray, scale: float = 1.0) -> np.ndarray:
+def object_track(script: Script, frames: dict, times: np.ndarray, scale: float = 1.0,
+                 half_height: float | None = None) -> np.ndarray:
     """(T, 4, 4) object -> world poses from the script's object keys.
 
-    Carried poses (frame 'body') are scaled with the person's stature
-    (`scale` = stature / 1.625 m, anny's neutral adult)."""
+    frames: 'body' -> (T, 4, 4) heading frames, 'head' -> (T, 4, 4) the same
+    axes with the origin at the nose. Carried poses (frame 'body') are scaled
+    with the person's stature (`scale` = stature / 1.625 m, anny's neutral adult)."""
     keys = script.object_keys
     key_times = np.array([k.t for k in keys])
+    heading = frames["body"]
 
     def anchor(key: ObjectKey) -> np.ndarray:  # (T, 4, 4) world pose of one key at every frame
+        rel = key.rel.copy()
+        if key.on_floor and half_height is not None:
+            rel[2, 3] = half_height
         if key.frame == "body":
-            rel = key.rel.copy()
             rel[:3, 3] *= scale
             return heading @ rel
+        if key.frame == "head":
+            return frames["head"] @ rel
+        if key.frame != "world":
+            raise ValueError(f"script {script.name}: unknown object key frame {key.frame!r}")
         ref = int(np.argmin(np.abs(times - key.ref)))
-        return np.broadcast_to(heading[ref] @ key.rel, (len(times), 4, 4)).copy()
+        return np.broadcast_to(heading[ref] @ rel, (len(times), 4, 4)).copy()
 
     anchors = [anchor(k) for k in keys]
     idx, w = eased_segments(key_times, times)
@@ -421,6 +434,10 @@ class HandGeometry:
     palm_patch: torch.Tensor
     hand: torch.Tensor
     fingers: list
+
+    @property
+    def whole(self) -> torch.Tensor:
+        return torch.cat([self.hand] + list(self.fingers))
 
 
 def dominant_bones(model) -> np.ndarray:
@@ -471,14 +488,14 @@ def palm_frames(keypoints: torch.Tensor, vertices: torch.Tensor, geom: HandGeome
 def grasp_targets(script: Script, spec: ObjectSpec, obj_poses: np.ndarray, gap: np.ndarray) -> dict:
     """Per hand side: target palm centre (T, 3), palm normal (T, 3), finger direction (T, 3), world.
 
-    The palm centre sits `gap` metres (plus 5 mm of skin clearance) out along
+    The palm centre sits `gap` metres (plus 2 mm of skin clearance) out along
     the surface normal; the palm faces the surface."""
     out = {}
     for hand in script.hands:
         g = spec.grasps[hand]
         R, t = obj_poses[:, :3, :3], obj_poses[:, :3, 3]
         normal = R @ np.asarray(g.normal, float)
-        point = (R @ np.asarray(g.point, float)) + t + normal * (0.005 + gap[:, None])
+        point = (R @ np.asarray(g.point, float)) + t + normal * (0.002 + gap[:, None])
         fdir = np.asarray(g.finger_dir, float)
         out[SIDES[hand]] = (point, -normal, R @ (fdir / np.linalg.norm(fdir)))
     return out
@@ -492,6 +509,11 @@ def to_object_frame(points: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
 def penetration(sdf, points_obj: torch.Tensor, margin: float) -> torch.Tensor:
     """(B,) sum over points of how far each is inside the surface grown by `margin`, squared."""
     return (torch.relu(margin - sdf(points_obj)) ** 2).sum(-1)
+
+
+def below_floor(points: torch.Tensor, margin: float = 0.003) -> torch.Tensor:
+    """(B,) sum of squared depths of points (B, N, 3) below the floor z = margin, over (2 mm)^2."""
+    return (torch.relu(margin - points[..., 2]) ** 2).sum(-1) / 0.002**2
 
 
 def run_lbfgs(variables: list, loss_fn, iters: int) -> None:
@@ -508,7 +530,7 @@ def run_lbfgs(variables: list, loss_fn, iters: int) -> None:
 
 
 def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, sdf, obj_poses: np.ndarray,
-                 iters: int = 40, prior_pose: torch.Tensor | None = None) -> torch.Tensor:
+                 iters: int = 40, prior_pose: torch.Tensor | None = None, retries: int = 2) -> torch.Tensor:
     """Bend spine and arms so the palms meet their targets, at frames where `weight` > 0.
 
     Minimises, per frame, with L-BFGS:
@@ -516,7 +538,9 @@ def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, s
                       + |palm and back of hand inside the object|^2 / (2 mm)^2 ]
       + sum_bones lambda_b |theta_b - theta_b^script|^2
     theta^script is `prior_pose` (T, Jb, 3) when given, else params.body_pose (the start).
-    Returns the updated body_pose (T, Jb, 3)."""
+    One L-BFGS over all frames can leave a few frames behind (a shared line
+    search): frames whose palm is still > 4 mm off are solved again on their own
+    (`retries` times). Returns the updated body_pose (T, Jb, 3)."""
     frames = np.flatnonzero(weight > 1e-3)
     body_pose = params.body_pose.detach().clone()
     if len(frames) == 0:
@@ -540,13 +564,29 @@ def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, s
         for side, (c_t, n_t, d_t) in tgt.items():
             c, n, d = palm_frames(out.keypoints, out.vertices, geom[side], side)
             err = ((c - c_t) ** 2).sum(-1) / 0.01**2 + 10 * (1 - (n * n_t).sum(-1)) + 10 * (1 - (d * d_t).sum(-1))
-            inside = penetration(sdf, to_object_frame(out.vertices[:, geom[side].hand], poses), 0.001) / 0.002**2
+            hand = out.vertices[:, geom[side].hand]
+            inside = penetration(sdf, to_object_frame(hand, poses), 0.0) / 0.002**2
+            inside = inside + below_floor(out.vertices[:, geom[side].whole])
             loss = loss + (w * (err + inside)).sum()
         return loss
 
     run_lbfgs([var], loss_fn, iters)
     body_pose[torch.as_tensor(frames)[:, None], ids[None]] = var.detach()
-    return body_pose
+    if retries <= 0:
+        return body_pose
+    with torch.no_grad():
+        out = model(dataclasses.replace(sub, body_pose=fixed_pose.index_copy(1, ids, var)))
+        error = torch.zeros(len(frames), dtype=dtype)
+        for side, (c_t, _, _) in tgt.items():
+            c, _, _ = palm_frames(out.keypoints, out.vertices, geom[side], side)
+            error = torch.maximum(error, (c - c_t).norm(dim=-1))
+    bad = frames[((error > 0.004) & (w > 0.5)).numpy()]
+    if len(bad) == 0:
+        return body_pose
+    again = np.zeros_like(weight)
+    again[bad] = weight[bad]
+    return solve_arm_ik(model, dataclasses.replace(params, body_pose=body_pose), targets, again, geom, sdf, obj_poses,
+                        iters=iters, prior_pose=prior if prior_pose is None else prior_pose, retries=retries - 1)
 
 
 def finger_bone_ids(model, finger: int) -> list[int]:
@@ -597,6 +637,7 @@ def solve_finger_grasp(model, params, frames: np.ndarray, geom: dict, sides: lis
         for s in sides:
             g = geom[s]
             loss = loss + penetration(sdf, to_object_frame(out.vertices[:, g.hand], poses), 0.001).sum() / 0.002**2
+            loss = loss + below_floor(out.vertices[:, g.whole]).sum()
             for f, ids in enumerate(g.fingers):
                 d = sdf(to_object_frame(out.vertices[:, ids], poses))  # (F, n)
                 loss = loss + (torch.relu(0.001 - d) ** 2).sum() / 0.002**2
@@ -672,6 +713,14 @@ def coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, time
     grip = solve_finger_grasp(model, params, coarse, geom, sides, sdf, obj_poses, relaxed, iters=iters)
     if len(coarse) == len(frames):
         return grip
+    if polish_iters <= 0:
+        out = {}
+        for s in sides:
+            c, t = (g.numpy() for g in grip[s])
+            ci = np.stack([np.interp(frames, coarse, c[:, k]) for k in range(5)], 1)
+            ti = np.stack([np.interp(frames, coarse, t[:, k]) for k in range(3)], 1)
+            out[s] = (torch.as_tensor(ci, dtype=grip[s][0].dtype), torch.as_tensor(ti, dtype=grip[s][0].dtype))
+        return out
     init = {}
     for s in sides:
         c, t = (g.numpy() for g in grip[s])
@@ -695,6 +744,7 @@ class Animation:
     props: list  # (name, mesh, 4x4 world pose) static scene meshes
     phases: dict  # phase -> (first frame, last frame)
     hand_gap: dict  # measured hand-to-object distances in contact frames
+    hand_distance: np.ndarray = None  # (T,) closest grasping-hand vertex to the object surface, metres
     timings: dict = field(default_factory=dict)  # seconds per stage
 
 
@@ -710,7 +760,7 @@ def hand_object_gap(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj_pose
     sdf = SurfaceDistance(spec.mesh)
     for hand in hands:
         g = geom[SIDES[hand]]
-        whole = torch.cat([g.hand] + list(g.fingers)).numpy()
+        whole = g.whole.numpy()
         gaps, pens = [], []
         for f in frames:
             R, t = obj_poses[f, :3, :3], obj_poses[f, :3, 3]
@@ -721,22 +771,64 @@ def hand_object_gap(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj_pose
     return out
 
 
-def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotype, heading0: float = 0.0,
-            ik_iters: int = 150, polish_iters: int = 25, solve_rate_hz: float = 10.0,
-            relaxed_curl: float = 0.25) -> Animation:
-    """Run the script on the body model at `times` (seconds of script time).
-
-    The arm IK and the finger grip are solved at <= `solve_rate_hz` with
-    `ik_iters` L-BFGS iterations, then polished at every frame (`polish_iters`)."""
-    clock = {"start": time.perf_counter()}
-    T = len(times)
-    params = model.init_params(T)
-    params.shape[:] = torch.as_tensor(phenotype, dtype=params.shape.dtype)[None]
+def scripted_pose(model, script: Script, times: np.ndarray, shape: torch.Tensor, relaxed_curl: float):
+    """BodyParams (T, ...) of the scripted posture and gait, identity orientation, zero translation."""
+    params = model.init_params(len(times))
+    params.shape[:] = shape
     names = model.body_joint_names
     pose = compose_rotvecs(posture_rotvecs(script, names, times), gait_rotvecs(script, names, times))
     params.body_pose = torch.as_tensor(pose, dtype=params.body_pose.dtype)
     for side in ("L", "R"):
         model.curl_fingers(params, side, relaxed_curl)
+    return params
+
+
+def root_path(model, script: Script, times: np.ndarray, shape: torch.Tensor, heading0: float, relaxed_curl: float,
+              rate_hz: float = 30.0) -> np.ndarray:
+    """(T, 2) root xy at `times`, integrated from the stance foot on a fine time grid
+    (>= rate_hz, so coarse frame rates still walk like the real thing)."""
+    end = float(times.max())
+    fine = np.union1d(np.linspace(0.0, end, max(2, int(np.ceil(end * rate_hz)) + 1)), times)
+    with torch.no_grad():
+        v_model = model(scripted_pose(model, script, fine, shape, relaxed_curl)).vertices.numpy()
+    yaw = eased_scalar(script.yaw_keys, fine)
+    pitch = eased_scalar(script.pitch_keys, fine)
+    R = body_orientation(model, heading_frames(yaw, np.zeros((len(fine), 2)), heading0), pitch)  # (F, 3, 3)
+    feet = {}
+    for side in ("left", "right"):
+        ids = model.contact_regions[f"{side}_foot"].cpu().numpy()
+        feet[side] = np.einsum("tij,tj->ti", R, v_model[:, ids].mean(1))
+    xy = stance_anchored_root(feet["left"], feet["right"])
+    return np.stack([np.interp(times, fine, xy[:, k]) for k in range(2)], 1)
+
+
+def hand_object_distance(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj_poses: np.ndarray,
+                         hands: tuple) -> np.ndarray:
+    """(T,) per frame, the smallest signed distance (m, < 0 inside) from the
+    grasping hands' vertices to the object surface: a contact check by geometry."""
+    sdf = SurfaceDistance(spec.mesh)
+    ids = np.concatenate([geom[SIDES[h]].whole.numpy() for h in hands])
+    local = np.einsum("tvj,tjk->tvk", vertices[:, ids] - obj_poses[:, None, :3, 3], obj_poses[:, :3, :3])
+    return sdf(local.reshape(-1, 3)).reshape(len(vertices), -1).min(1)
+
+
+def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotype, heading0: float = 0.0,
+            ik_iters: int = 100, polish_iters: int = 20, solve_rate_hz: float = 5.0, finger_iters: int = 60,
+            grip_rate_hz: float = 3.0, relaxed_curl: float = 0.25) -> Animation:
+    """Run the script on the body model at `times` (seconds of script time).
+
+    The arm IK is solved at <= `solve_rate_hz` with `ik_iters` L-BFGS
+    iterations, then polished at every frame (`polish_iters`); the finger grip
+    (nearly constant while the hand holds the object) at <= `grip_rate_hz`,
+    interpolated in between."""
+    missing = [h for h in script.hands if h not in spec.grasps]
+    if missing:
+        raise ValueError(f"script {script.name} holds the object with the {' and '.join(script.hands)} hand(s), "
+                         f"but object {spec.name!r} has no grasp for the {' and '.join(missing)} hand")
+    clock = {"start": time.perf_counter()}
+    T = len(times)
+    shape = torch.as_tensor(phenotype, dtype=model.dtype)[None]
+    params = scripted_pose(model, script, times, shape, relaxed_curl)
 
     rest_params = model.init_params(1)
     rest_params.shape[:] = params.shape[:1]
@@ -751,12 +843,7 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     with torch.no_grad():
         local = model(params)  # identity orientation, zero translation: model coordinates
     v_model = local.vertices.numpy()
-    R = body_orientation(model, heading_frames(yaw, np.zeros((T, 2)), heading0), pitch)  # (T, 3, 3)
-    feet = {}
-    for side in ("left", "right"):
-        ids = model.contact_regions[f"{side}_foot"].cpu().numpy()
-        feet[side] = np.einsum("tij,tj->ti", R, v_model[:, ids].mean(1))
-    root_xy = stance_anchored_root(feet["left"], feet["right"])
+    root_xy = root_path(model, script, times, params.shape[:1], heading0, relaxed_curl)
     heading = heading_frames(yaw, root_xy, heading0)
     R = body_orientation(model, heading, pitch)
     lowest = np.einsum("tij,tvj->tv", R[:, 2:3], v_model).min(1)  # (T,) height of the lowest vertex
@@ -766,7 +853,10 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
 
     # 3: object track; 4: arms to the grasp points.
     stature = float(np.ptp(rest_v @ np.asarray(model.up_axis, float)))
-    obj_poses = object_track(script, heading, times, scale=stature / 1.625)
+    head = heading.copy()
+    head[:, :3, 3] = np.einsum("tij,tj->ti", R, local.keypoints[:, 0].numpy()) + transl  # the nose, scripted pose
+    obj_poses = object_track(script, {"body": heading, "head": head}, times, scale=stature / 1.625,
+                             half_height=spec.half_height)
     sdf = SdfGrid(spec.mesh)
     reach = eased_scalar(script.reach_keys, times)
     gap = eased_scalar(script.gap_keys, times)
@@ -784,7 +874,7 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     frames = np.flatnonzero(contact)
     if frames.size:
         grip = coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, times, relaxed_curl,
-                                   solve_rate_hz, ik_iters, polish_iters)
+                                   grip_rate_hz, finger_iters, polish_iters)
         dtype = params.transl.dtype
         k_reach = torch.as_tensor(reach, dtype=dtype)[:, None]
         k_close = torch.as_tensor(closure, dtype=dtype)[:, None]
@@ -817,7 +907,9 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
         if sel.size:
             phase_frames[name] = (int(sel[0]), int(sel[-1]))
     gaps = hand_object_gap(vertices, geom, spec, obj_poses, contact, script.hands)
+    distance = hand_object_distance(vertices, geom, spec, obj_poses, script.hands)
     clock["end"] = time.perf_counter()
     names = list(clock)
     timings = {b: clock[b] - clock[a] for a, b in zip(names[:-1], names[1:])}
-    return Animation(params.detach(), vertices, keypoints, obj_poses, contact, props, phase_frames, gaps, timings)
+    return Animation(params.detach(), vertices, keypoints, obj_poses, contact, props, phase_frames, gaps, distance,
+                     timings)

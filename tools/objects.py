@@ -114,8 +114,8 @@ def make_object(name: str) -> ObjectSpec:
         # Hands on the two short ends, fingers pointing forward and down.
         down_fwd = (0.0, 0.6, -0.8)
         grasps = {
-            "right": Grasp((hx, -0.01, 0.0), (1.0, 0.0, 0.0), down_fwd),
-            "left": Grasp((-hx, -0.01, 0.0), (-1.0, 0.0, 0.0), down_fwd),
+            "right": Grasp((hx, -0.01, 0.025), (1.0, 0.0, 0.0), down_fwd),
+            "left": Grasp((-hx, -0.01, 0.025), (-1.0, 0.0, 0.0), down_fwd),
         }
         spec = dict(color=(176, 128, 72), mass_kg=1.2, radius=0.13)
         contact_points = [g.point for g in grasps.values()]
@@ -164,7 +164,8 @@ class SurfaceDistance:
         import open3d as o3d
 
         pts = o3d.core.Tensor(np.asarray(points, np.float32).reshape(-1, 3))
-        return self.scene.compute_signed_distance(pts).numpy().astype(np.float64)
+        # the inside test casts rays; one ray grazing an edge can flip the sign, so take a vote of three
+        return self.scene.compute_signed_distance(pts, nsamples=3).numpy().astype(np.float64)
 
 
 class SdfGrid:
@@ -172,7 +173,7 @@ class SdfGrid:
     trilinear interpolation in torch (differentiable: used to keep hands out of
     the object and fingers on its surface). > 0 outside, metres."""
 
-    def __init__(self, mesh: trimesh.Trimesh, margin: float = 0.06, max_cells: int = 96):
+    def __init__(self, mesh: trimesh.Trimesh, margin: float = 0.05, max_cells: int = 80):
         import torch
 
         lo = np.asarray(mesh.bounds[0]) - margin

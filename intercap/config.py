@@ -55,7 +55,9 @@ class ObjectConfig:
     w_depth: float = 1.0  # l_depth
     depth_scale_m: float = 0.03  # Geman-McClure scale of depth residuals
     occluder_margin_m: float = 0.03  # measured this much in front of the object = occluded there
-    iterations: int = 30
+    iterations: int = 30  # at most, per frame
+    stop_tolerance: float = 1e-3  # relative E_O decrease that counts as progress
+    stop_patience: int = 5  # steps without progress before stopping
     init_iterations: int = 15  # per hypothesis, before the best is refined
     init_global_tries: int = 3  # FPFH RANSAC registrations among the hypotheses
     init_keep: int = 6  # registration hypotheses (best ICP fitness) scored by E_O

@@ -42,6 +42,7 @@ from intercap.segmentation import background_depth, clean_mask, components, fore
 
 log = logging.getLogger(__name__)
 reg = o3d.pipelines.registration
+o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's per-call warnings are noise here
 
 
 @dataclass
@@ -237,11 +238,17 @@ class ObjectTracker:
         t_c = torch.as_tensor(self._to_centre(R0, t0), dtype=torch.float32).clone().requires_grad_(True)
         optimiser = torch.optim.Adam([{"params": [r6], "lr": cfg.lr_rotation}, {"params": [t_c], "lr": cfg.lr_translation}])
         best = (np.inf, None, None)
+        stalled = 0
         for step in range(cfg.iterations if iterations is None else iterations):
             optimiser.zero_grad()
             total, _, _, _ = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight, rotation_6d_to_matrix(r6), t_c, crops)
-            if total.item() < best[0]:
-                best = (total.item(), r6.detach().clone(), t_c.detach().clone())
+            value = total.item()
+            # Stop once E_O has not improved by a relative `stop_tolerance` for `stop_patience` steps.
+            stalled = stalled + 1 if value > best[0] * (1 - cfg.stop_tolerance) else 0
+            if value < best[0]:
+                best = (value, r6.detach().clone(), t_c.detach().clone())
+            if stalled >= cfg.stop_patience:
+                break
             total.backward()
             optimiser.step()
         with torch.no_grad():

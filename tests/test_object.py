@@ -57,13 +57,16 @@ def test_tracking_with_session_masks_recovers_poses(box_session, tmp_path):
     assert list((tmp_path / "object" / "overlays").glob("*.jpg"))
 
 
-def test_tracking_with_derived_masks(box_session, tmp_path):
+def test_tracking_with_derived_masks(tmp_path):
+    """No masks: depth background over the whole sample (the box must move away once for
+    its resting place to be learnt as floor), render-compare-and-preserve selection."""
     cfg = load_config(overrides=["object.use_session_masks=false"])
-    metrics = run_pipeline(box_session, tmp_path, cfg, stages=["object"], progress=False)["object"]
+    metrics = run_pipeline(SAMPLE, tmp_path, cfg, stages=["object"], progress=False)["object"]
     assert metrics["masks"] == "derived"
-    add = add_errors(evaluate(tmp_path, box_session))
-    assert np.isfinite(add).sum() >= FRAMES - 2
-    assert np.nanmedian(add) < 25.0, add
+    add = add_errors(evaluate(tmp_path, SAMPLE))
+    assert np.isfinite(add).sum() >= 15  # the carry, with arms around the box, may be marked untrusted
+    assert np.nanmedian(add) < 15.0, add
+    assert np.nanpercentile(add, 90) < 30.0, add
 
 
 def test_object_leaving_the_view_is_marked_not_invented(box_session, tmp_path):

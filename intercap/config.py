@@ -59,7 +59,8 @@ class ObjectConfig:
     stop_tolerance: float = 1e-3  # relative E_O decrease that counts as progress
     stop_patience: int = 5  # steps without progress before stopping
     init_iterations: int = 15  # per hypothesis, before the best is refined
-    init_global_tries: int = 3  # FPFH RANSAC registrations among the hypotheses
+    init_global_tries: int = 2  # FPFH RANSAC registrations among the hypotheses
+    init_ransac_iterations: int = 5000
     init_keep: int = 6  # registration hypotheses (best ICP fitness) scored by E_O
     init_refine: int = 2  # of those, the lowest-E_O ones that get a short fit
     lr_rotation: float = 0.02

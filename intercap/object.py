@@ -28,7 +28,7 @@ import open3d as o3d
 import torch
 from tqdm import tqdm
 
-from intercap.cameras import Cameras, depth_to_point_grid, project
+from intercap.cameras import Cameras, depth_to_point_grid, pixel_rays, project
 from intercap.io import save_npz
 from intercap.losses import (
     matrix_to_rotation_6d,
@@ -112,6 +112,7 @@ class ObjectTracker:
         self.sizes = [(c.height, c.width) for c in session.cameras]
         self.use_masks = cfg.use_session_masks and all(session.has_kind("mask_object"))
         self.backgrounds = None
+        self._rays: dict[int, torch.Tensor] = {}
 
     # -- observations ---------------------------------------------------------------
     def _background(self) -> list[np.ndarray]:
@@ -174,7 +175,12 @@ class ObjectTracker:
         return best if best is not None else np.zeros_like(foreground)
 
     def _points(self, c: int, depth: np.ndarray) -> np.ndarray:
-        points, valid = depth_to_point_grid(torch.from_numpy(depth)[None], self.cameras.select([c]), 1, 0.1, 10.0)
+        """World points (N, 3) of the non-zero pixels of one view's depth map."""
+        if c not in self._rays:  # undistorting every pixel is the costly part: once per camera
+            H, W = self.sizes[c]
+            self._rays[c] = pixel_rays(self.cameras.select([c]), H, W, 1)
+        points, valid = depth_to_point_grid(torch.from_numpy(depth)[None], self.cameras.select([c]), 1, 0.1, 10.0,
+                                            rays=self._rays[c])
         return points[0][valid[0]].numpy().astype(np.float64)
 
     # -- pose helpers ---------------------------------------------------------------------
@@ -324,7 +330,7 @@ class ObjectTracker:
             o3d.utility.random.seed(cfg.seed + k)
             result = reg.registration_ransac_based_on_feature_matching(
                 model, sc, fm, fs, True, voxel * 2, reg.TransformationEstimationPointToPoint(False), 3,
-                [reg.CorrespondenceCheckerBasedOnDistance(voxel * 2)], reg.RANSACConvergenceCriteria(20000, 0.999))
+                [reg.CorrespondenceCheckerBasedOnDistance(voxel * 2)], reg.RANSACConvergenceCriteria(cfg.init_ransac_iterations, 0.999))
             T = result.transformation  # model -> scene
             out.append((T[:3, :3], T[:3, 3]))
         return out

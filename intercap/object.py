@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 import open3d as o3d
 import torch
+import trimesh
 from tqdm import tqdm
 
 from intercap.cameras import Cameras, depth_to_point_grid, pixel_rays, project
@@ -106,7 +107,7 @@ class ObjectTracker:
         self.vertices_c = torch.as_tensor(vertices - self.centroid, dtype=torch.float32, device=device)  # centred
         self.topology = MeshTopology.from_faces(torch.as_tensor(self.faces, device=device))
         self.extent = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
-        samples, face_ids = mesh.sample(4000, return_index=True, seed=cfg.seed) if _sample_takes_seed(mesh) else _sample(mesh, cfg.seed)
+        samples, face_ids = trimesh.sample.sample_surface(mesh, 4000, seed=cfg.seed)
         self.model_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(samples) - self.centroid))
         self.model_cloud.normals = o3d.utility.Vector3dVector(np.asarray(mesh.face_normals)[face_ids])
         self.sizes = [(c.height, c.width) for c in session.cameras]
@@ -345,23 +346,6 @@ class ObjectTracker:
         fits = [self.fit(obs, f.R, f.t, iterations=self.cfg.init_iterations) for f in scored[: self.cfg.init_refine]]
         best = min(fits, key=lambda f: f.energy)
         return self.fit(obs, best.R, best.t)
-
-
-def _sample_takes_seed(mesh) -> bool:
-    import inspect
-
-    return "seed" in inspect.signature(mesh.sample).parameters
-
-
-def _sample(mesh, seed):
-    import trimesh
-
-    state = np.random.get_state()
-    np.random.seed(seed)
-    try:
-        return trimesh.sample.sample_surface(mesh, 4000)
-    finally:
-        np.random.set_state(state)
 
 
 TRACKED, REINITIALISED, LOST, UNTRUSTED = 1, 2, 3, 4

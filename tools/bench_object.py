@@ -56,7 +56,8 @@ def main(argv=None) -> None:
     parser.add_argument("--cameras", type=int, default=4)
     parser.add_argument("--width", type=int, default=640)
     parser.add_argument("--height", type=int, default=576)
-    parser.add_argument("--frames", type=int, default=40)
+    parser.add_argument("--frames", type=int, default=40, help="frames spanning each script; 0: the script at 30 fps")
+    parser.add_argument("--masks", default="given,derived", help="which mask sources to run")
     parser.add_argument("--objects", default="box,cup,chair")
     parser.add_argument("--keep", type=Path, help="keep the sessions and results here")
     args = parser.parse_args(argv)
@@ -70,9 +71,9 @@ def main(argv=None) -> None:
             session = work / f"{name}_session"
             if not (session / "session.yaml").exists():
                 cfg = SynthConfig(script=SCRIPTS[name], object=name, cameras=args.cameras, width=args.width,
-                                  height=args.height, frames=args.frames, quiet=True)
+                                  height=args.height, frames=args.frames or None, fps=30.0, quiet=True)
                 generate_session(cfg, session)
-            for masks in (True, False):
+            for masks in [m == "given" for m in args.masks.split(",")]:
                 row = track_and_score(session, work / f"{name}_{'masks' if masks else 'derived'}", masks)
                 rows.append((name, "given" if masks else "derived", row))
                 print(f"{name:6s} {'given' if masks else 'derived':8s} done", flush=True)
@@ -80,7 +81,8 @@ def main(argv=None) -> None:
         if args.keep is None:
             shutil.rmtree(work, ignore_errors=True)
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    print(f"\nobject tracking, {args.cameras} views at {args.width}x{args.height}, {args.frames} frames per session")
+    print(f"\nobject tracking, {args.cameras} views at {args.width}x{args.height}, "
+          f"{args.frames or 'all (30 fps)'} frames per session")
     print("object masks    metric  ADD med  ADD p90  rot med  rot p90  trans med  trans p90  lost  s/frame")
     for name, masks, r in rows:
         print(f"{name:6s} {masks:8s} {r['add']:6s} {r['add_median']:8.1f} {r['add_p90']:8.1f} {r['rot_median']:8.2f} "

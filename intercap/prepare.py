@@ -100,17 +100,13 @@ def estimate_ground(session, clouds: ViewClouds, cfg, progress: bool) -> tuple[G
     return plane, "ransac"
 
 
-def median_agreement(per_frame: list[list]) -> list[dict]:
-    """Per camera pair, the median of each figure over the checked frames."""
-    rows = []
-    for pair in zip(*per_frame):
-        row = {"cam_a": pair[0].cam_a, "cam_b": pair[0].cam_b, "frames": len(pair)}
-        for key in ("overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
-                    "correction_translation_mm", "fitness"):
-            values = np.array([getattr(p, key) for p in pair], float)
-            row[key] = float(np.nanmedian(values)) if np.isfinite(values).any() else float("nan")
-        rows.append(row)
-    return rows
+AGREEMENT_FIELDS = ("cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
+                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg")
+
+
+def agreement_rows(results: list, frames: int) -> list[dict]:
+    """The calibration check's per-pair figures as JSON-ready rows."""
+    return [{**{key: getattr(r, key) for key in AGREEMENT_FIELDS}, "frames": frames} for r in results]
 
 
 def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
@@ -127,7 +123,9 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     names = [c.name for c in session.cameras]
     centers = cameras.centers.numpy()
     checked = spread_frames(session.frame_ids, pcfg.calib_frames)
-    fused = [[] for _ in names]  # per camera, its clouds over the checked frames (the scene is static)
+    # Per camera, its clouds over the checked frames: the cameras are synchronised, so each
+    # frame's person is at the same place in every view, and more points beat the depth noise.
+    fused = [[] for _ in names]
     used_frames = 0
     for frame_id in tqdm(checked, desc="prepare: calibration check", disable=not progress):
         views = clouds.frame(int(frame_id))
@@ -142,24 +140,19 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
         used_frames += 1
         for c, v in enumerate(views):
             fused[c].append(v["points"])
-    per_frame = []
+    results = []
     if used_frames:
-        # one ICP per pair on the clouds fused over frames: more points beat the depth noise
-        per_frame.append(check_calibration([np.concatenate(f) for f in fused], names, centers,
-                                           max_distance=pcfg.icp_max_distance_m,
-                                           voxel_size=max(2 * pcfg.voxel_size_m, 0.02)))
-    pairs = median_agreement(per_frame) if per_frame else []
-    for row, result in zip(pairs, per_frame[0] if per_frame else []):
-        row["frames"] = used_frames
-        row["unobservable"] = result.unobservable
-        row["full_translation_mm"], row["full_rotation_deg"] = result.full_translation_mm, result.full_rotation_deg
+        results = check_calibration([np.concatenate(f) for f in fused], names, centers,
+                                    max_distance=pcfg.icp_max_distance_m,
+                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02))
+    pairs = agreement_rows(results, used_frames)
     flagged = [p for p in pairs if p["correction_translation_mm"] > pcfg.calib_warn_mm
                or p["correction_rotation_deg"] > pcfg.calib_warn_deg]
     write_json(stage_dir / "calibration_check.json", {"frames": [int(f) for f in checked], "pairs": pairs,
                                                       "warn_mm": pcfg.calib_warn_mm, "flagged": flagged})
-    if per_frame:
+    if results:
         log.info("calibration check (clouds fused over %d frames)\n%s", used_frames,
-                 format_agreement(per_frame[0], warn_mm=pcfg.calib_warn_mm, warn_deg=pcfg.calib_warn_deg))
+                 format_agreement(results, warn_mm=pcfg.calib_warn_mm, warn_deg=pcfg.calib_warn_deg))
     for p in flagged:
         log.warning("cameras %s and %s disagree by %.1f mm / %.2f deg: check the calibration",
                     p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["correction_rotation_deg"])

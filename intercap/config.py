@@ -71,6 +71,7 @@ class ObjectConfig:
     min_confidence: float = 0.5  # mean silhouette IoU below this = not trusted
     reinit_energy_ratio: float = 4.0  # E_O above this times its recent median triggers re-initialisation
     background_frames: int = 30
+    bridge_fraction: float = 0.006  # derived masks: join object fragments this far apart (fraction of image width)
     checkpoint_every: int = 10
     overlay_every: int = 10
     seed: int = 0

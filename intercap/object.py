@@ -162,8 +162,10 @@ class ObjectTracker:
         foreground = foreground_mask(depth, self._background()[c])
         person = self.session.read_mask(c, frame_id, "person")
         if guide is not None:
-            return select_object_candidate(foreground, person, guide.astype(np.float32), self.cfg.min_mask_px)
-        candidates = components(clean_mask(foreground & ~person if person is not None else foreground), self.cfg.min_mask_px)
+            return select_object_candidate(foreground, person, guide.astype(np.float32), self.cfg.min_mask_px,
+                                           bridge_px=self._bridge_px(c))
+        candidates = components(clean_mask(foreground & ~person if person is not None else foreground),
+                                self.cfg.min_mask_px, self._bridge_px(c))
         best, best_score = None, np.inf
         for cand in candidates:
             points = self._points(c, depth * cand)
@@ -174,6 +176,10 @@ class ObjectTracker:
             if score < best_score and extent < 1.6 * self.extent:
                 best, best_score = cand, score
         return best if best is not None else np.zeros_like(foreground)
+
+    def _bridge_px(self, c: int) -> int:
+        """Gap (pixels) bridged between fragments of the object's depth foreground in view c."""
+        return max(1, int(round(self.cfg.bridge_fraction * self.sizes[c][1])))
 
     def _points(self, c: int, depth: np.ndarray) -> np.ndarray:
         """World points (N, 3) of the non-zero pixels of one view's depth map."""

@@ -52,12 +52,21 @@ def clean_mask(mask: np.ndarray, open_px: int = 1) -> np.ndarray:
     return cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
 
 
-def components(mask: np.ndarray, min_area: int) -> list[np.ndarray]:
-    """Connected components (8-connected) of at least `min_area` pixels, largest first."""
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(mask.astype(np.uint8), connectivity=8)
-    keep = [k for k in range(1, count) if stats[k, cv2.CC_STAT_AREA] >= min_area]
-    keep.sort(key=lambda k: -stats[k, cv2.CC_STAT_AREA])
-    return [labels == k for k in keep]
+def components(mask: np.ndarray, min_area: int, bridge_px: int = 0) -> list[np.ndarray]:
+    """Connected components (8-connected) of at least `min_area` pixels, largest first.
+
+    `bridge_px` > 0 joins fragments separated by gaps up to about twice that
+    (a thin-barred object cut apart by depth dropouts at its edges); each
+    component keeps only pixels of `mask`."""
+    joined = mask.astype(np.uint8)
+    if bridge_px > 0:
+        kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * bridge_px + 1, 2 * bridge_px + 1))
+        joined = cv2.morphologyEx(joined, cv2.MORPH_CLOSE, kernel)
+    count, labels, _, _ = cv2.connectedComponentsWithStats(joined, connectivity=8)
+    parts = [(labels == k) & mask for k in range(1, count)]
+    parts = [p for p in parts if p.sum() >= min_area]
+    parts.sort(key=lambda p: -int(p.sum()))
+    return parts
 
 
 def select_object_candidate(
@@ -66,6 +75,7 @@ def select_object_candidate(
     predicted: np.ndarray | None,
     min_area: int = 30,
     grow_px: int = 6,
+    bridge_px: int = 0,
 ) -> np.ndarray:
     """The object's mask in one view, (H, W) bool (empty when there is none).
 
@@ -75,7 +85,7 @@ def select_object_candidate(
     prediction grown by `grow_px` (cuts off the hand or arm still attached);
     without one, the largest candidate is returned."""
     candidates_mask = foreground & ~person if person is not None else foreground
-    candidates = components(clean_mask(candidates_mask), min_area)
+    candidates = components(clean_mask(candidates_mask), min_area, bridge_px)
     if not candidates:
         return np.zeros_like(foreground, dtype=bool)
     if predicted is None:

@@ -102,9 +102,31 @@ class AnnyBody(BodyModel):
             self.register_buffer(f"finger_flex_axes_{side}", self._flex_axes(rest_vertices, rest_heads, side))
         self.fitting_subsample = torch.from_numpy(farthest_point_subsample(rest_vertices, 2000))
         self.keypoint_valid = torch.ones(NUM_BODY_HANDS, dtype=torch.bool)
+        self._build_skinned_regressor(core)
         self.to(device)
 
     # -- construction helpers -------------------------------------------------
+    def _build_skinned_regressor(self, core) -> None:
+        """Fold anny's COCO regressor through skinning and the blend shapes (see `sparse_forward`).
+
+        A regressed keypoint is sum_v w_kv x_v with x_v = sum_j s_vj (R_j r_v + t_j) and
+        r_v = r0_v + sum_a c_a D_av, so it is sum_j R_j P_kj(c) + t_j S_kj with
+        P_kj(c) = sum_v w_kv s_vj (r0_v + sum_a c_a D_av) and S_kj = sum_v w_kv s_vj:
+        exact, and independent of the 13,718 vertices once folded."""
+        self._sparse_ok = core.bone_orientation == "cached" and core.rest_orientation_refiner is None
+        if not self._sparse_ok:
+            return
+        weights = core.dense_vertex_bone_weights.double()  # (V, J)
+        wk = self.coco_weights.double()  # (K, V)
+        used = torch.nonzero(((wk.abs() > 0).double() @ (weights > 0).double()).sum(0) > 0)[:, 0]
+        self.register_buffer("coco_bones", used)  # the bones any regressed keypoint depends on
+        folded = wk[:, :, None] * weights[None, :, used]  # (K, V, J')
+        self.register_buffer("coco_skin", folded.sum(1).to(self.dtype))  # (K, J')
+        self.register_buffer("coco_rest", torch.einsum("kvj,vd->kjd", folded, core.template_vertices.double()).to(self.dtype))
+        self.register_buffer(
+            "coco_blend", torch.einsum("kvj,avd->akjd", folded, core.blendshapes.double()).to(self.dtype)
+        )  # (A, K, J, 3)
+
     @staticmethod
     def _dense_weights(core) -> np.ndarray:
         ids = core.vertex_bone_indices.long().cpu().numpy()
@@ -213,24 +235,68 @@ class AnnyBody(BodyModel):
         rotations = rotations.index_copy(1, self.hand_bone_ids_R, axis_angle_to_matrix(params.right_hand_pose))
         return rotations
 
-    def forward(self, params: BodyParams) -> BodyOutput:
+    def _pose_matrices(self, params: BodyParams) -> torch.Tensor:
         rotations = self.bone_rotations(params)  # (B, J, 3, 3)
         homogeneous = torch.zeros(*rotations.shape[:2], 4, 4, dtype=self.dtype, device=rotations.device)
         homogeneous[..., :3, :3] = rotations
         homogeneous[..., 3, 3] = 1.0
-        out = self.core(homogeneous, phenotype_kwargs=params.shape, facial_actions=params.expression)
+        return homogeneous
+
+    def forward(self, params: BodyParams) -> BodyOutput:
+        out = self.core(self._pose_matrices(params), phenotype_kwargs=params.shape, facial_actions=params.expression)
         vertices = out["vertices"]  # (B, V, 3) model coordinates
         joints = out["bone_poses"][..., :3, 3]  # (B, J, 3)
-        keypoints = self._openpose_keypoints(vertices, joints)
+        coco = torch.einsum("kv,bvd->bkd", self.coco_weights, vertices)  # (B, 23, 3)
+        keypoints = self._openpose_keypoints(coco, joints, vertices[:, self.fingertip_vertex_ids])
         return BodyOutput(
             vertices=self.to_world(vertices, params),
             joints=self.to_world(joints, params),
             keypoints=self.to_world(keypoints, params),
         )
 
-    def _openpose_keypoints(self, vertices: torch.Tensor, joints: torch.Tensor) -> torch.Tensor:
-        """(B, 67, 3): BODY_25 from anny's COCO+feet regressor, hands from finger bones and tips."""
-        coco = torch.einsum("kv,bvd->bkd", self.coco_weights, vertices)  # (B, 23, 3)
+    def sparse_forward(self, params: BodyParams, vertex_ids: torch.Tensor) -> BodyOutput:
+        """`forward` for fitting: keypoints and joints exactly as `forward`, but only the vertices
+        `vertex_ids` (BodyOutput.vertices is (B, len(vertex_ids), 3)). Skins those vertices only and
+        takes the regressed keypoints from the folded regressor (`_build_skinned_regressor`), so a
+        fitting step costs a fraction of the 13,718-vertex forward."""
+        if not self._sparse_ok:
+            return super().sparse_forward(params, vertex_ids)
+        core = self.core
+        pose = self._pose_matrices(params)
+        _, phenotype, local_changes, actions = core.get_tensor_inputs(pose, params.shape, None, params.expression)
+        coeffs = core._get_phenotype_blendshape_coefficients(phenotype, local_changes, actions)  # (B, A)
+        heads = core.template_bone_heads[None] + torch.einsum("ajd,ba->bjd", core.bone_heads_blendshapes, coeffs)
+        cross = core.bone_template_orientation_matrices[None] + torch.einsum(
+            "ba,akij->bkij", coeffs, core.bone_orientation_blendshapes)
+        import roma
+
+        rest = torch.zeros(*heads.shape[:2], 4, 4, dtype=heads.dtype, device=heads.device)
+        rest[..., :3, :3] = roma.special_procrustes(cross)
+        rest[..., :3, 3] = heads
+        rest[..., 3, 3] = 1.0
+        if core.root_identity_orientation:
+            rest[:, 0, :3, :3] = torch.eye(3, dtype=heads.dtype, device=heads.device)
+        transforms, bone_poses = core.get_bone_transforms(pose, rest)  # (B, J, 4, 4) each
+        ids = torch.cat([vertex_ids.to(self.fingertip_vertex_ids), self.fingertip_vertex_ids])
+        rest_vertices = core.template_vertices[ids][None] + torch.einsum("avd,ba->bvd", core.blendshapes[:, ids], coeffs)
+        blend = torch.einsum("nj,bjik->bnik", core.dense_vertex_bone_weights[ids], transforms[..., :3, :])
+        vertices = (blend[..., :3] * rest_vertices[..., None, :]).sum(-1) + blend[..., 3]  # (B, n, 3)
+        folded = self.coco_rest[None] + torch.einsum("ba,akjd->bkjd", coeffs, self.coco_blend)  # (B, K, J, 3)
+        used = transforms[:, self.coco_bones]
+        coco = (torch.einsum("bjde,bkje->bkd", used[..., :3, :3], folded)
+                + torch.einsum("bjd,kj->bkd", used[..., :3, 3], self.coco_skin))
+        joints = bone_poses[..., :3, 3]
+        n = len(vertex_ids)
+        keypoints = self._openpose_keypoints(coco, joints, vertices[:, n:])
+        return BodyOutput(
+            vertices=self.to_world(vertices[:, :n], params),
+            joints=self.to_world(joints, params),
+            keypoints=self.to_world(keypoints, params),
+        )
+
+    def _openpose_keypoints(self, coco: torch.Tensor, joints: torch.Tensor, tips: torch.Tensor) -> torch.Tensor:
+        """(B, 67, 3) from the COCO+feet regression (B, 23, 3), bone heads (B, J, 3) and the ten
+        fingertip vertices (B, 10, 3): BODY_25 from the regressor, hands from finger bones and tips."""
         named = {label: coco[:, i] for i, label in enumerate(self._coco_labels)}
         named["neck"] = (named["left_shoulder"] + named["right_shoulder"]) / 2
         named["mid_hip"] = (named["left_hip"] + named["right_hip"]) / 2
@@ -238,7 +304,6 @@ class AnnyBody(BodyModel):
         named["left_wrist"] = joints[:, self._index["wrist.L"]]
         named["right_wrist"] = joints[:, self._index["wrist.R"]]
         body = torch.stack([named[COCO_TO_BODY25.get(n, n)] for n in BODY_25], dim=1)  # (B, 25, 3)
-        tips = vertices[:, self.fingertip_vertex_ids]  # (B, 10, 3)
         hands = []
         for s, side in enumerate(SIDES):
             points = [named["left_wrist" if side == "L" else "right_wrist"]]

@@ -167,6 +167,11 @@ class BodyModel(torch.nn.Module):
     def forward(self, params: BodyParams) -> BodyOutput:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def sparse_forward(self, params: BodyParams, vertex_ids: torch.Tensor) -> BodyOutput:
+        """`forward` keeping only the vertices `vertex_ids`; backends override it with a cheaper path."""
+        out = self.forward(params)
+        return BodyOutput(vertices=out.vertices[:, vertex_ids], joints=out.joints, keypoints=out.keypoints)
+
     @staticmethod
     def to_world(points: torch.Tensor, params: BodyParams) -> torch.Tensor:
         """Model coordinates (B, N, 3) -> world with global_orient and transl."""

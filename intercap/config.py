@@ -44,6 +44,14 @@ class PrepareConfig:
 
 
 @dataclass
+class DetectConfig:
+    """2D whole-body keypoints: the session's OpenPose JSON, or our own detector."""
+
+    use_session_keypoints: bool = True  # False: detect even when the session has keypoints
+    detector: str = "mediapipe"  # see intercap.detect.available_detectors()
+
+
+@dataclass
 class ObjectConfig:
     """Per-frame object tracking by silhouette + depth rendering (E_O)."""
 
@@ -78,6 +86,42 @@ class ObjectConfig:
 
 
 @dataclass
+class BodyConfig:
+    """Per-frame whole-body fitting (multi-view PROX-D): E_J + E_D + priors, L-BFGS in phases."""
+
+    use_session_masks: bool = True  # False: derive person masks from depth even when the session has them
+    batch_frames: int = 8  # frames fitted as one batch (warm-started from the previous batch)
+    min_keypoint_confidence: float = 0.2  # detections below this are ignored
+    min_body_keypoints: int = 6  # a view counts for a frame when it has this many confident body keypoints
+    min_points: int = 100  # a view's depth counts when its person mask gives this many points
+    points_per_view: int = 400  # segmented depth points per view used by E_D
+    person_erode_px: int = 2  # drop mask border pixels (mixed depth) at 640 px width, scaled with it
+    keypoint_rho: float = 100.0  # Geman-McClure scale of E_J, pixels at a 1000 px focal length (final phase)
+    keypoint_rho_start: float = 400.0  # the same in the first phases: far-off starts are not outliers
+    hand_keypoint_weight: float = 1.0  # per-joint weight of the 2 x 21 hand keypoints (body: 1)
+    depth_scale_m: float = 0.05  # Geman-McClure scale of E_D
+    visibility_margin_m: float = 0.03  # a vertex is visible when at most this behind the nearest surface
+    visibility_cells: int = 100  # z-buffer cells across the image width for the visibility test
+    w_keypoints: float = 1.0
+    w_depth: float = 3.0e5
+    w_pose_prior: float = 10.0  # learned Gaussian mixture (CMU)
+    w_joint_limits: float = 1.0e4
+    w_bending: float = 1.0e3
+    w_hand_prior: float = 1.0e3
+    w_shape: float = 100.0
+    w_expression: float = 10.0
+    w_penetration: float = 1.0e5
+    fit_expression: bool = False  # anny has no face landmarks in our keypoint set: expression stays neutral
+    orient_steps: int = 5  # L-BFGS steps of the phase that moves only orientation + translation
+    pose_steps: int = 10  # + body pose and shape, keypoints only
+    full_steps: int = 10  # + hands, with the depth term and self-penetration
+    inner_iterations: int = 5  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
+    ftol: float = 1e-5
+    overlay_every: int = 10
+    seed: int = 0
+
+
+@dataclass
 class RunConfig:
     """What `intercap run` does."""
 
@@ -90,7 +134,9 @@ class RunConfig:
 class Config:
     body_model: BodyModelConfig = field(default_factory=BodyModelConfig)
     prepare: PrepareConfig = field(default_factory=PrepareConfig)
+    detect: DetectConfig = field(default_factory=DetectConfig)
     object: ObjectConfig = field(default_factory=ObjectConfig)
+    body: BodyConfig = field(default_factory=BodyConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
 

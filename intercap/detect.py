@@ -380,3 +380,19 @@ def detect_session(session, out_dir: Path | str, detector: KeypointDetector, pro
         if bar is not None:
             bar.close()
     return counts
+
+
+def session_keypoints_usable(session, cfg) -> bool:
+    """Whether the body fit reads the session's own keypoints (every camera has them, and the
+    config allows it) instead of the `detect` stage's."""
+    return cfg.detect.use_session_keypoints and all(session.has_kind("keypoints"))
+
+
+def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
+    """The `detect` stage: nothing to do when the session brings keypoints for every camera;
+    otherwise runs the configured detector on every view and frame into OUT/detect/."""
+    if session_keypoints_usable(session, cfg):
+        return {"keypoints": "session"}
+    with make_detector(cfg.detect.detector) as detector:
+        counts = detect_session(session, out_dir, detector, progress=progress)
+    return {"keypoints": cfg.detect.detector, **counts}

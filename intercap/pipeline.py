@@ -47,9 +47,23 @@ def _run_object(session, cfg, out_dir, progress):
     return object_stage.run(session, cfg, out_dir, progress=progress)
 
 
+def _run_detect(session, cfg, out_dir, progress):
+    from intercap import detect
+
+    return detect.run(session, cfg, out_dir, progress=progress)
+
+
+def _run_body(session, cfg, out_dir, progress):
+    from intercap import body
+
+    return body.run(session, cfg, out_dir, progress=progress)
+
+
 STAGES: dict[str, Stage] = {
     "prepare": Stage("prepare", _run_prepare, ("prepare",)),
+    "detect": Stage("detect", _run_detect, ("detect",)),
     "object": Stage("object", _run_object, ("object",)),
+    "body": Stage("body", _run_body, ("detect", "body")),
 }
 
 

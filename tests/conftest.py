@@ -238,3 +238,27 @@ def write_tiny_session(
 def tiny_session(tmp_path: Path) -> Path:
     """A fresh tiny valid session (2 cameras cam0/cam1, 64x48, 3 frames, box object); its folder."""
     return write_tiny_session(tmp_path / "session")
+
+
+SAMPLE_SESSION = Path(__file__).resolve().parents[1] / "data_samples" / "sample"
+
+
+def trimmed_copy(src: Path, dst: Path, frames: int) -> Path:
+    """The first `frames` frames of a session, ground truth sliced to match."""
+    import shutil
+
+    shutil.copytree(src, dst, ignore=lambda d, names: [
+        n for n in names if n.endswith((".png", ".jpg", ".json")) and n[:6].isdigit() and int(n[:6]) >= frames])
+    doc = yaml.safe_load((dst / "session.yaml").read_text())
+    doc["frames"] = {"start": 0, "end": frames - 1}
+    (dst / "session.yaml").write_text(yaml.safe_dump(doc))
+    gt = dst / "ground_truth"
+    for name in ("body_vertices.npy", "contact.npy", "keypoints3d.npy"):
+        np.save(gt / name, np.load(gt / name)[:frames])
+    poses = np.load(gt / "object_poses.npz")
+    np.savez(gt / "object_poses.npz", R=poses["R"][:frames], t=poses["t"][:frames])
+    if (gt / "body_params.npz").exists():
+        params = dict(np.load(gt / "body_params.npz"))
+        np.savez(gt / "body_params.npz", **{k: (v[:frames] if v.ndim else v) for k, v in params.items()})
+    (gt / "info.json").unlink(missing_ok=True)
+    return dst

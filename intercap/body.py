@@ -45,6 +45,7 @@ from intercap.optim import minimise
 
 log = logging.getLogger(__name__)
 
+SHAPE_EPS = 1e-3  # shape logits start at most this close to the ends of [0, 1]
 # Bones the keypoints cannot see: they stay at rest.
 FROZEN_BONE_PREFIXES = ("toe", "eye", "pelvis")
 TORSO_KEYPOINTS = [BODY_25.index(n) for n in
@@ -504,11 +505,15 @@ class BodyFitter:
             leaves = {n: getattr(params, n).detach().clone() for n in names}
             if "body_pose" in leaves:
                 leaves["body_pose"] = params.body_pose[:, free].detach().clone()
+            if "shape" in leaves:  # optimised as a logit: anny's phenotypes extrapolate wildly outside [0, 1]
+                leaves["shape"] = torch.logit(params.shape.detach().clamp(SHAPE_EPS, 1 - SHAPE_EPS))
             state = {"matches": None}
 
             def current() -> BodyParams:
                 values = {n: leaves.get(n, getattr(params, n).detach()) for n in
                           ("shape", "global_orient", "transl", "left_hand_pose", "right_hand_pose", "expression")}
+                if "shape" in leaves:
+                    values["shape"] = torch.sigmoid(leaves["shape"])
                 body_pose = params.body_pose.detach()
                 if "body_pose" in leaves:
                     body_pose = body_pose.index_copy(1, free, leaves["body_pose"])

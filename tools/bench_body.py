@@ -10,7 +10,7 @@ person masks), and scored:
     figure; InterCap reports 19 mm at 3-5 minutes per frame),
   * frames not fitted, seconds per frame (all views) and peak memory.
 
-    python -m tools.bench_body [--frames 30] [--sessions pick4,drink4,pick6] [--keep DIR]
+    python -m tools.bench_body [--frames 30] [--sessions pick4,drink4,pick6] [--keep DIR] [--set body.KEY=VALUE]
 
 `--frames N` spans each script with N frames (N=30 is about 5 fps: larger
 motion between frames than a capture at 30 fps); `--frames 0` uses every
@@ -62,12 +62,12 @@ def point_cloud_distance_mm(session_dir: Path, out_dir: Path) -> float:
     return 1000 * float(np.mean(medians)) if medians else float("nan")
 
 
-def fit_and_score(session: Path, out: Path) -> dict:
+def fit_and_score(session: Path, out: Path, overrides: list[str]) -> dict:
     from intercap.config import load_config
     from intercap.evaluate import evaluate
     from intercap.pipeline import run_pipeline
 
-    cfg = load_config(overrides=["run.force=true"])
+    cfg = load_config(overrides=["run.force=true", *overrides])
     start = time.perf_counter()
     metrics = run_pipeline(session, out, cfg, stages=["body"], progress=False)["body"]
     seconds = time.perf_counter() - start
@@ -88,6 +88,8 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=30, help="frames spanning each script; 0: the script at 30 fps")
     parser.add_argument("--sessions", default="pick4,drink4,pick6", help=f"any of {', '.join(SESSIONS)}")
     parser.add_argument("--keep", type=Path, help="keep the sessions and results here")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="config override, e.g. body.batch_frames=4 (repeatable)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     from tools.synth import SynthConfig, generate_session
@@ -102,7 +104,7 @@ def main(argv=None) -> None:
                 cfg = SynthConfig(script=script, object=obj, cameras=cameras, width=args.width, height=args.height,
                                   frames=args.frames or None, fps=30.0, phenotype=phenotype, quiet=True)
                 generate_session(cfg, session)
-            rows.append((name, script, cameras, fit_and_score(session, work / f"{name}_{args.frames}_body")))
+            rows.append((name, script, cameras, fit_and_score(session, work / f"{name}_{args.frames}_body", args.set)))
             print(f"{name} done", flush=True)
     finally:
         if args.keep is None:

@@ -90,7 +90,7 @@ class BodyConfig:
     """Per-frame whole-body fitting (multi-view PROX-D): E_J + E_D + priors, L-BFGS in phases."""
 
     use_session_masks: bool = True  # False: derive person masks from depth even when the session has them
-    batch_frames: int = 8  # frames fitted as one batch (warm-started from the previous batch)
+    batch_frames: int = 4  # frames fitted as one batch (warm-started from the previous batch)
     min_keypoint_confidence: float = 0.2  # detections below this are ignored
     min_body_keypoints: int = 6  # a view counts for a frame when it has this many confident body keypoints
     min_points: int = 100  # a view's depth counts when its person mask gives this many points
@@ -113,9 +113,9 @@ class BodyConfig:
     w_penetration: float = 1.0e5
     fit_expression: bool = False  # anny has no face landmarks in our keypoint set: expression stays neutral
     orient_steps: int = 5  # L-BFGS steps of the phase that moves only orientation + translation
-    pose_steps: int = 10  # + body pose and shape, keypoints only
+    pose_steps: int = 15  # + body pose and shape, keypoints only
     full_steps: int = 10  # + hands, with the depth term and self-penetration
-    inner_iterations: int = 5  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
+    inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
     overlay_every: int = 10
     seed: int = 0

@@ -90,5 +90,5 @@ def test_cli_validate_and_run_errors(tmp_path, capsys):
     assert "cam" in capsys.readouterr().out
     assert main(["validate", str(tmp_path)]) == 1
     assert "session.yaml" in capsys.readouterr().out
-    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "body"]) == 2
+    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "global"]) == 2
     assert "not implemented yet" in capsys.readouterr().err

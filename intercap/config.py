@@ -63,23 +63,33 @@ class ObjectConfig:
     w_depth: float = 1.0  # l_depth
     depth_scale_m: float = 0.03  # Geman-McClure scale of depth residuals
     occluder_margin_m: float = 0.03  # measured this much in front of the object = occluded there
-    iterations: int = 30  # at most, per frame
+    iterations: int = 60  # at most, per frame (early stopping ends most fits at 30 fps in 10-20)
     stop_tolerance: float = 1e-3  # relative E_O decrease that counts as progress
-    stop_patience: int = 5  # steps without progress before stopping
+    stop_patience: int = 3  # steps without progress before the step size shrinks (or the fit stops)
     init_iterations: int = 15  # per hypothesis, before the best is refined
     init_global_tries: int = 2  # FPFH RANSAC registrations among the hypotheses
     init_ransac_iterations: int = 5000
     init_keep: int = 6  # registration hypotheses (best ICP fitness) scored by E_O
-    init_refine: int = 2  # of those, the lowest-E_O ones that get a short fit
+    init_refine: int = 8  # of those (and the prediction), the lowest-E_O ones that get a short fit
     lr_rotation: float = 0.02
     lr_translation: float = 0.004
+    lr_decay: float = 0.3  # step sizes shrink by this when E_O stalls ...
+    lr_decays: int = 1  # ... this many times before the fit stops
     voxel_size_m: float = 0.005
+    voxel_fraction: float = 0.0125  # registration voxel at least this fraction of the object's extent
+    init_max_points: int = 1500  # observed points registered (evenly thinned beyond this)
     min_mask_px: int = 30
     min_views: int = 1  # views that must see the object for a pose
     min_confidence: float = 0.5  # mean silhouette IoU below this = not trusted
-    reinit_energy_ratio: float = 4.0  # E_O above this times its recent median triggers re-initialisation
+    reinit_energy_ratio: float = 1.5  # E_O above this times its recent median: search for a better pose
+    trust_energy_ratio: float = 2.0  # E_O still above this times that median after the search: untrusted
+    energy_window: int = 30  # frames whose E_O (the last 5 with a fit) set that median
+    confirm_ratio: float = 0.9  # a search ending above this times the tracked E_O confirms it as the new level
+    coast_frames: int = 15  # after losing track, fit from the last trusted pose for this many frames
     background_frames: int = 30
+    background_valid_fraction: float = 0.3  # pixels measured in fewer of those frames have no background (dark floors lose ~40%)
     bridge_fraction: float = 0.006  # derived masks: join object fragments this far apart (fraction of image width)
+    near_margin_m: float = 0.05  # derived masks: object pixels lie within this of the predicted bounding sphere
     checkpoint_every: int = 10
     overlay_every: int = 10
     seed: int = 0

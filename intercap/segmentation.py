@@ -1,36 +1,54 @@
 """Person / object segmentation from depth when the session has no masks.
 
 A static background is learnt per camera from depth over time (the far,
-stable value of each pixel), foreground is what lies clearly in front of it,
-and object candidates are the foreground's connected components outside the
-person. Which candidate is the object is decided by the tracker: the one that
-best overlaps the rendering of the object's predicted pose
-("render-compare-and-preserve", InterCap).
+stable value of each pixel; the person's pixels left out; regions beyond the
+sensor's range known as far), foreground is what lies clearly in front of it,
+and object candidates are the foreground outside the person. Which pixels are
+the object is decided by the tracker (`intercap.object`): those whose 3D
+points lie near the object's predicted pose.
 """
 from __future__ import annotations
-
-import warnings
 
 import cv2
 import numpy as np
 
 
-def background_depth(depth_stack: np.ndarray, percentile: float = 90.0, min_valid_fraction: float = 0.75) -> np.ndarray:
+def background_depth(depth_stack: np.ndarray, percentile: float = 90.0, min_valid_fraction: float = 0.75,
+                     ignore: np.ndarray | None = None, far_fraction: float = 0.8) -> np.ndarray:
     """Per-pixel background depth (H, W) from depth maps (T, H, W) in metres.
 
     Moving people and objects are nearer than the background, so a high
-    percentile of the valid samples is the background. A pixel that reads no
-    measurement in many frames (beyond the sensor's range, or a dark far
-    surface) has an unknown background, 0: whatever is measured there is in
-    front of it. Sparse dropouts (edges, noise) stay below `min_valid_fraction`."""
+    percentile of the valid samples is the background. A missing measurement
+    inside a region where nearly nothing is measured (more than `far_fraction`
+    of a window ~1/70 of the width wide) means the surface is beyond the
+    sensor's range: that sample counts as infinitely far, so a pixel that shows
+    the far wall in enough frames has an unknown background, 0 (whatever is
+    measured there is in front of it), even if the object stood there in the
+    others. Speckled dropouts (dark surfaces, edges) are no measurement at all,
+    and a pixel with fewer samples than `min_valid_fraction` of the frames has
+    an unknown background. `ignore` (T, H, W) bool marks samples known not to
+    be background (the person's mask): they count as no measurement."""
     stack = np.asarray(depth_stack, dtype=np.float32)
-    valid = stack > 0
-    masked = np.where(valid, stack, np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN pixels
-        background = np.nanpercentile(masked, percentile, axis=0)
-    background[valid.mean(0) < min_valid_fraction] = 0
-    return np.nan_to_num(background, nan=0.0).astype(np.float32)
+    T, H, W = stack.shape
+    missing = stack <= 0
+    k = 2 * max(2, int(round(W / 140))) + 1  # at least 5 x 5: 40% scattered dropouts never fill 80% of it
+    far = np.stack([cv2.blur(m.astype(np.float32), (k, k)) > far_fraction for m in missing]) & missing
+    valid = (~missing | far) if ignore is None else (~missing | far) & ~ignore
+    count = valid.sum(0)  # (H, W) samples per pixel
+    # np.nanpercentile falls back to a per-pixel loop when NaNs are present (~10 s per
+    # camera): sort once instead (unusable samples as NaN go last, beyond-range ones as +inf
+    # just before them) and interpolate between the two ranks around the percentile, as
+    # numpy's default method does.
+    ordered = np.sort(np.where(valid, np.where(far, np.inf, stack), np.nan), axis=0)
+    position = (np.maximum(count, 1) - 1) * (percentile / 100.0)
+    lower = np.floor(position).astype(np.int64)
+    upper = np.minimum(lower + 1, np.maximum(count - 1, 0))
+    low = np.take_along_axis(ordered, lower[None], 0)[0]
+    high = np.take_along_axis(ordered, upper[None], 0)[0]
+    with np.errstate(invalid="ignore"):
+        background = low + (high - low) * (position - lower)
+    background[~np.isfinite(background) | (count < min_valid_fraction * T)] = 0
+    return background.astype(np.float32)
 
 
 def foreground_mask(depth: np.ndarray, background: np.ndarray, margin_m: float = 0.04, relative: float = 0.015) -> np.ndarray:
@@ -42,6 +60,21 @@ def foreground_mask(depth: np.ndarray, background: np.ndarray, margin_m: float =
     known = background > 0
     threshold = np.where(known, background - (margin_m + relative * background), np.inf)
     return valid & (depth < threshold)
+
+
+def uncertain_mask(depth: np.ndarray, background: np.ndarray, margin_m: float = 0.01, relative: float = 0.005) -> np.ndarray:
+    """Pixels somewhat in front of the background, (H, W) bool: with `foreground_mask`'s
+    default margins removed, those too near the background to tell apart from it
+    (an object's part touching the floor), to be treated as unknown."""
+    return foreground_mask(depth, background, margin_m, relative)
+
+
+def fill_missing(mask: np.ndarray, depth: np.ndarray, radius_px: int) -> np.ndarray:
+    """`mask` plus the pixels without a depth measurement that a closing of radius
+    `radius_px` adds to it (dropouts inside and between its parts), (H, W) bool."""
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+    closed = cv2.morphologyEx(mask.astype(np.uint8), cv2.MORPH_CLOSE, kernel).astype(bool)
+    return mask | (closed & (depth <= 0))
 
 
 def clean_mask(mask: np.ndarray, open_px: int = 1) -> np.ndarray:
@@ -67,34 +100,3 @@ def components(mask: np.ndarray, min_area: int, bridge_px: int = 0) -> list[np.n
     parts = [p for p in parts if p.sum() >= min_area]
     parts.sort(key=lambda p: -int(p.sum()))
     return parts
-
-
-def select_object_candidate(
-    foreground: np.ndarray,
-    person: np.ndarray | None,
-    predicted: np.ndarray | None,
-    min_area: int = 30,
-    grow_px: int = 6,
-    bridge_px: int = 0,
-) -> np.ndarray:
-    """The object's mask in one view, (H, W) bool (empty when there is none).
-
-    Candidates are foreground components outside the person mask. With a
-    predicted silhouette (H, W) in [0, 1] (the rendering of the predicted pose),
-    the candidate with the largest overlap wins and is clipped to the
-    prediction grown by `grow_px` (cuts off the hand or arm still attached);
-    without one, the largest candidate is returned."""
-    candidates_mask = foreground & ~person if person is not None else foreground
-    candidates = components(clean_mask(candidates_mask), min_area, bridge_px)
-    if not candidates:
-        return np.zeros_like(foreground, dtype=bool)
-    if predicted is None:
-        return candidates[0]
-    weights = np.asarray(predicted, dtype=np.float32)
-    overlaps = [float(weights[c].sum()) for c in candidates]
-    best = int(np.argmax(overlaps))
-    if overlaps[best] <= 0:
-        return np.zeros_like(foreground, dtype=bool)
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow_px + 1, 2 * grow_px + 1))
-    region = cv2.dilate((weights > 0.5).astype(np.uint8), kernel).astype(bool)
-    return candidates[best] & region

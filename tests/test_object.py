@@ -5,13 +5,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 
 from intercap.config import load_config
 from intercap.evaluate import evaluate
 from intercap.losses import geman_mcclure, matrix_to_rotation_6d, rotation_6d_to_matrix
-from intercap.object import LOST, UNTRUSTED, predict_pose
+from intercap.object import LOST, UNTRUSTED, ObjectTracker, axis_rotation, crop_windows, predict_pose
 from intercap.pipeline import run_pipeline
+from intercap.rendering import crop_observation
+from intercap.segmentation import background_depth
+from intercap.session import Session
 
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "sample"
@@ -59,14 +63,15 @@ def test_tracking_with_session_masks_recovers_poses(box_session, tmp_path):
 
 def test_tracking_with_derived_masks(tmp_path):
     """No masks: depth background over the whole sample (the box must move away once for
-    its resting place to be learnt as floor), render-compare-and-preserve selection."""
+    its resting place to be learnt as floor), object pixels chosen near the predicted pose.
+    The carry, with arms round the box and 30 frames spanning the whole script, must stay tracked."""
     cfg = load_config(overrides=["object.use_session_masks=false"])
     metrics = run_pipeline(SAMPLE, tmp_path, cfg, stages=["object"], progress=False)["object"]
     assert metrics["masks"] == "derived"
     add = add_errors(evaluate(tmp_path, SAMPLE))
-    assert np.isfinite(add).sum() >= 15  # the carry, with arms around the box, may be marked untrusted
-    assert np.nanmedian(add) < 15.0, add
-    assert np.nanpercentile(add, 90) < 30.0, add
+    assert np.isfinite(add).sum() >= 26, add
+    assert np.nanmedian(add) < 8.0, add
+    assert np.nanpercentile(add, 90) < 20.0, add
 
 
 def test_object_leaving_the_view_is_marked_not_invented(box_session, tmp_path):
@@ -128,3 +133,95 @@ def test_constant_velocity_prediction_and_rotation_helpers():
     r = torch.tensor([0.0, 0.01, 10.0])
     rho = geman_mcclure(r, 0.02)
     assert rho[0] == 0 and rho[2] > 0.99 and rho[1] < 0.25
+
+
+@pytest.fixture(scope="module")
+def sample_tracker():
+    """A tracker on the committed sample with derived masks, and its true poses."""
+    session = Session.load(SAMPLE)
+    cfg = load_config(overrides=["object.use_session_masks=false"]).object
+    truth = np.load(SAMPLE / "ground_truth" / "object_poses.npz")
+    return ObjectTracker(session, cfg, session.object.load_mesh()), session, truth
+
+
+def iou(a, b):
+    return (a & b).sum() / max(1, (a | b).sum())
+
+
+def test_derived_mask_follows_an_object_that_moved_more_than_predicted(sample_tracker):
+    """Frame 23 (carried, hands on the box): predicted 8 cm off, the derived masks still match the
+    session's object masks in every view that sees much of the box; with no prediction at all the
+    whole foreground is searched by size, not given up."""
+    tracker, session, truth = sample_tracker
+    frame = 23
+    R, t = truth["R"][frame], truth["t"][frame]
+    obs = tracker.observe(frame, (R, t + np.array([0.08, 0.0, 0.0])), reach_m=0.05)
+    scores = [iou(obs.mask[c] > 0.5, session.read_mask(c, frame, "object")) for c in range(4)
+              if session.read_mask(c, frame, "object").sum() > 250]
+    assert len(scores) >= 3 and min(scores) > 0.7, scores
+    assert tracker.observe(frame, None).visible_views >= 2
+
+
+def test_refit_recovers_a_quarter_turn(sample_tracker):
+    """Started a quarter turn off (the 0.30 x 0.20 x 0.15 m box turned about its long axis), the
+    local fit sinks into the wrong minimum; `refit` (quarter turns about the principal axes) gets
+    back to the true pose."""
+    tracker, session, truth = sample_tracker
+    frame = 2
+    R, t = truth["R"][frame], truth["t"][frame]
+    obs = tracker.observe(frame, (R, t))
+    axis = np.linalg.svd(np.asarray(tracker.model_cloud.points), full_matrices=False)[2][0]  # the long axis
+    R0 = R @ axis_rotation(axis, 90.0)
+    t0 = t + R @ tracker.centroid - R0 @ tracker.centroid  # turned about the centroid
+    wrong = tracker.fit(obs, R0, t0)
+    fixed = tracker.refit(obs, wrong, (R0, t0))
+    assert fixed.energy < wrong.energy
+    centre_error = np.linalg.norm(tracker._to_centre(fixed.R, fixed.t) - tracker._to_centre(R, t))
+    axis_error = np.degrees(np.arccos(abs((fixed.R @ axis) @ (R @ axis))))
+    assert centre_error < 0.01 and axis_error < 3.0, (centre_error, axis_error)
+
+
+def test_pose_behind_the_observed_surface_costs_more(sample_tracker):
+    """E_O: pushing the object back behind its own observed surface must not hide it from the
+    depth term (its observed pixels are never occluders)."""
+    tracker, _, truth = sample_tracker
+    frame = 2
+    R, t = truth["R"][frame], truth["t"][frame]
+    obs = tracker.observe(frame, (R, t))
+    at_truth = tracker.fit(obs, R, t, iterations=0).energy
+    away = tracker.cameras.T_world_from_cam[:, :3, 3].mean(0).numpy() - tracker._to_centre(R, t)
+    behind = t - 0.10 * away / np.linalg.norm(away)
+    assert tracker.fit(obs, R, behind, iterations=0).energy > at_truth + 0.2
+
+
+def test_background_model_knows_far_regions_and_skips_the_person():
+    """Background depth: a region beyond the sensor's range in some frames (a solid hole in
+    the depth map) stays unknown even where an object stood in the others; speckled dropouts
+    (a dark floor) are just missing samples; samples under the person mask are not background,
+    even where the person (a head before the far wall) fills almost every frame."""
+    rng = np.random.default_rng(0)
+    T, H, W = 20, 60, 160
+    stack = np.full((T, H, W), 3.0, np.float32) + rng.normal(0, 0.005, (T, H, W)).astype(np.float32)
+    stack[:, :20] = 0.0  # beyond range: nothing measured in the top band ...
+    stack[:14, 5:15, 10:30] = 2.0  # ... except an object standing there in most frames
+    person = np.zeros((T, H, W), bool)
+    person[1:, 2:12, 100:120] = True
+    stack[1:, 2:12, 100:120] = 1.5  # ... and the person's head, there in 19 of 20 frames
+    speckle = rng.random((T, H, W)) < 0.4  # a dark floor: 40% dropouts, scattered
+    stack[:, 40:] = np.where(speckle[:, 40:], 0.0, stack[:, 40:])
+    background = background_depth(stack, min_valid_fraction=0.3, ignore=person)
+    assert (background[:20] == 0).all()  # neither the object nor the head becomes background
+    floor = background[45:]
+    assert (floor > 0).mean() > 0.99 and np.allclose(floor[floor > 0], 3.0, atol=0.03)  # the dark floor is known
+    plain = background_depth(stack, min_valid_fraction=0.3)  # without the person mask the head is learnt
+    assert np.allclose(plain[2:12, 100:120], 1.5, atol=0.03)
+
+
+def test_crop_windows_equals_cropping_whole_images():
+    rng = np.random.default_rng(1)
+    images = rng.random((2, 3, 90, 120)).astype(np.float32)
+    crops = torch.tensor([[10.3, 5.2, 50.7, 45.6], [-20.0, -10.0, 30.0, 40.0], [100.0, 70.0, 150.0, 120.0]])
+    for k, mode in enumerate(("area", "nearest")):
+        full = crop_observation(torch.from_numpy(images[k]), crops, (16, 16), mode)
+        windowed = crop_windows(images, crops, (16, 16), ("area", "nearest"))[k]
+        assert torch.allclose(full, windowed, atol=1e-4)

@@ -6,7 +6,6 @@ import cv2
 import numpy as np
 import pytest
 import torch
-import yaml
 
 from intercap.config import load_config
 from intercap.evaluate import evaluate
@@ -16,27 +15,11 @@ from intercap.pipeline import run_pipeline
 from intercap.rendering import crop_observation
 from intercap.segmentation import background_depth
 from intercap.session import Session
+from tests.conftest import trimmed_copy
 
 
 SAMPLE = Path(__file__).resolve().parents[1] / "data_samples" / "sample"
 FRAMES = 10
-
-
-def trimmed_copy(src: Path, dst: Path, frames: int) -> Path:
-    """The first `frames` frames of a session, ground truth sliced to match."""
-    shutil.copytree(src, dst, ignore=lambda d, names: [
-        n for n in names if n.endswith((".png", ".jpg", ".json")) and n[:6].isdigit() and int(n[:6]) >= frames])
-    doc = yaml.safe_load((dst / "session.yaml").read_text())
-    doc["frames"] = {"start": 0, "end": frames - 1}
-    (dst / "session.yaml").write_text(yaml.safe_dump(doc))
-    gt = dst / "ground_truth"
-    for name in ("body_vertices.npy", "contact.npy", "keypoints3d.npy"):
-        np.save(gt / name, np.load(gt / name)[:frames])
-    poses = np.load(gt / "object_poses.npz")
-    np.savez(gt / "object_poses.npz", R=poses["R"][:frames], t=poses["t"][:frames])
-    for optional in ("body_params.npz", "info.json"):
-        (gt / optional).unlink(missing_ok=True)
-    return dst
 
 
 @pytest.fixture(scope="module")

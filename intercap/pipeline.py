@@ -59,11 +59,18 @@ def _run_body(session, cfg, out_dir, progress):
     return body.run(session, cfg, out_dir, progress=progress)
 
 
+def _run_contact(session, cfg, out_dir, progress):
+    from intercap import contact
+
+    return contact.run(session, cfg, out_dir, progress=progress)
+
+
 STAGES: dict[str, Stage] = {
     "prepare": Stage("prepare", _run_prepare, ("prepare",)),
     "detect": Stage("detect", _run_detect, ("detect",)),
     "object": Stage("object", _run_object, ("object",)),
     "body": Stage("body", _run_body, ("detect", "body")),
+    "contact": Stage("contact", _run_contact, ("contact",)),
 }
 
 

@@ -17,10 +17,11 @@ do not interact), initialised per frame by aligning the previous batch's pose
 to the triangulated torso keypoints. A frame with too little evidence (see
 `usable_frames`) is marked invalid and written as NaN, never invented.
 
-Outputs (SESSION_FORMAT.md): OUT/body_params.npz (the model's parameters per
+Outputs (SESSION_FORMAT.md): body_params.npz (the model's parameters per
 frame, `model`, `valid`, per-frame `shape` and its sequence mean `shape_mean`),
-OUT/body_vertices.npy, OUT/body_faces.npy, OUT/keypoints3d.npy; OUT/body/
-holds the resumable checkpoint and overlay pictures.
+body_vertices.npy, body_faces.npy, keypoints3d.npy, kept in OUT/body/ (with
+the resumable checkpoint and overlay pictures) and shown at OUT/ until the
+`global` stage replaces them with its own.
 """
 from __future__ import annotations
 
@@ -40,7 +41,7 @@ from body_models.base import axis_angle_to_matrix, matrix_to_axis_angle
 from body_models.keypoints import BODY_25, BODY_25_EDGES, NUM_BODY, NUM_BODY_HANDS
 from intercap import losses, priors
 from intercap.cameras import Cameras, pixel_rays, project, undistort, _remove_intrinsics
-from intercap.io import read_json, save_npy, save_npz
+from intercap.io import per_frame_result, publish, read_json, save_npy, save_npz
 from intercap.optim import minimise
 
 log = logging.getLogger(__name__)
@@ -125,7 +126,7 @@ class PersonPoints:
         self.rays = [pixel_rays(cameras.select([c]), cam.height, cam.width)[0] for c, cam in enumerate(session.cameras)]
         self._background = None
         self._object = None
-        poses = Path(out_dir) / "object_poses.npz"
+        poses = per_frame_result(out_dir, "object", "object_poses.npz")
         if not self.use_masks and session.object is not None and poses.exists():
             data = np.load(poses)
             mesh = session.object.load_mesh()
@@ -444,11 +445,13 @@ class BodyFitter:
 
     # -- energy ----------------------------------------------------------------------
     def energy_terms(self, params: BodyParams, obs: BodyObservations, terms, matches=None,
-                     rho: float | None = None) -> dict[str, torch.Tensor]:
+                     rho: float | None = None, out=None) -> dict[str, torch.Tensor]:
         """Each active term per frame, (B,), unweighted. `matches`: E_D's (nearest, normals) from
         `correspondences`, needed when "depth" is among the terms; `rho`: E_J's robust scale
-        (default cfg.keypoint_rho)."""
-        out = self.model.sparse_forward(params, self.subset)  # vertices: the fitting subsample only
+        (default cfg.keypoint_rho); `out`: the model's output for `params` whose first vertices
+        are the fitting subsample, when the caller has it already."""
+        if out is None:
+            out = self.model.sparse_forward(params, self.subset)  # vertices: the fitting subsample only
         C = len(self.cameras)
         B, K = out.keypoints.shape[0], NUM_BODY_HANDS
         result = {}
@@ -462,7 +465,8 @@ class BodyFitter:
         if "depth" in terms:
             nearest, normals = matches
             result["depth"] = losses.point_to_visible_vertices(
-                obs.points, obs.point_valid, out.vertices, normals, nearest, self.cfg.depth_scale_m)
+                obs.points, obs.point_valid, out.vertices[:, :len(self.subset)], normals, nearest,
+                self.cfg.depth_scale_m)
         if "pose_prior" in terms:
             result["pose_prior"] = priors.learned_pose_prior(params.body_pose)
         if "joint_limits" in terms:
@@ -639,8 +643,12 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     return write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, bcfg, cameras)
 
 
+PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")
+
+
 def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras) -> dict:
-    """The SESSION_FORMAT.md files; frames without a fit are NaN."""
+    """The SESSION_FORMAT.md files, kept in OUT/body/ and shown at OUT/ until the `global` stage
+    replaces them; frames without a fit are NaN."""
     T = session.num_frames
     vertices = np.full((T, model.num_vertices, 3), np.nan, np.float32)
     keypoints = np.full((T, NUM_BODY_HANDS, 3), np.nan, np.float32)
@@ -656,12 +664,14 @@ def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, ou
     for name in arrays:
         arrays[name][~valid] = np.nan
     shape_mean = arrays["shape"][valid].mean(0) if valid.any() else np.full(model.num_shape, np.nan)
-    save_npz(out_dir / "body_params.npz", model=np.array(model.name), **arrays, shape_mean=shape_mean.astype(np.float32),
-             valid=valid, frame_ids=session.frame_ids, reprojection_px=reproj.astype(np.float32))
-    save_npy(out_dir / "body_vertices.npy", vertices)
-    save_npy(out_dir / "body_faces.npy", model.faces.cpu().numpy().astype(np.int64))
-    save_npy(out_dir / "keypoints3d.npy", keypoints)
     stage_dir = out_dir / "body"
+    save_npz(stage_dir / "body_params.npz", model=np.array(model.name), **arrays, shape_mean=shape_mean.astype(np.float32),
+             valid=valid, frame_ids=session.frame_ids, reprojection_px=reproj.astype(np.float32))
+    save_npy(stage_dir / "body_vertices.npy", vertices)
+    save_npy(stage_dir / "body_faces.npy", model.faces.cpu().numpy().astype(np.int64))
+    save_npy(stage_dir / "keypoints3d.npy", keypoints)
+    for name in PER_FRAME_FILES:
+        publish(stage_dir / name, out_dir / name)
     for i in range(0, T, max(1, bcfg.overlay_every)):
         if valid[i]:
             draw_overlay(session, model, fitted.map(lambda t: t[i:i + 1]), int(session.frame_ids[i]), cameras,

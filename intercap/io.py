@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -42,6 +43,34 @@ def save_npy(path: str | Path, array: np.ndarray) -> None:
     with open(tmp, "wb") as f:
         np.save(f, array)
     os.replace(tmp, path)
+
+
+def publish(path: str | Path, public: str | Path) -> None:
+    """Show a stage's own result file at `public` (the results folder's top level): a hard link
+    where the file system allows, else a copy, replacing what was there atomically. A later
+    stage that publishes its own file there leaves this one untouched in the stage folder."""
+    path, public = Path(path), Path(public)
+    tmp = _atomic_target(public, path.suffix)
+    tmp.unlink()
+    try:
+        os.link(path, tmp)
+    except OSError:
+        shutil.copyfile(path, tmp)
+    os.replace(tmp, public)
+
+
+def per_frame_result(out_dir: str | Path, stage: str, name: str) -> Path:
+    """The per-frame stage's own copy of a result, OUT/<stage>/<name>.
+
+    Results folders written before stages kept their own copies have only the
+    top-level file; it is adopted into the stage folder first, so a later
+    stage that replaces the top-level file cannot take its own output for
+    the per-frame one."""
+    out_dir = Path(out_dir)
+    own = out_dir / stage / name
+    if not own.exists() and (out_dir / name).exists():
+        publish(out_dir / name, own)
+    return own
 
 
 def write_point_cloud_ply(path: str | Path, points: np.ndarray, colors: np.ndarray | None = None) -> None:

@@ -21,8 +21,9 @@ deg), then by registration. Frames whose best fit still disagrees with the
 observations, or where no view sees the object, get NaN poses and confidence 0
 (marked, never invented).
 
-Writes OUT/object_poses.npz (R (T,3,3), t (T,3), confidence (T,), valid (T,),
-frame_ids (T,)), OUT/object/progress.npz while running (resume), and
+Writes OUT/object/object_poses.npz (R (T,3,3), t (T,3), confidence (T,), valid (T,),
+frame_ids (T,)), shown as OUT/object_poses.npz until the `global` stage
+replaces that with its own, OUT/object/progress.npz while running (resume), and
 OUT/object/overlays/*.jpg (rendered outline on the colour images) for a person
 to check.
 """
@@ -40,7 +41,7 @@ import trimesh
 from tqdm import tqdm
 
 from intercap.cameras import Cameras, pixel_rays, project
-from intercap.io import save_npz
+from intercap.io import publish, save_npz
 from intercap.losses import (
     matrix_to_rotation_6d,
     object_depth,
@@ -629,8 +630,9 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     tracker = ObjectTracker(session, ocfg, session.object.load_mesh(), device=cfg.run.device)
     state = track(tracker, session.frame_ids, stage_dir / "progress.npz", progress, session.object.initial_pose)
     valid = np.isin(state["status"], (TRACKED, REINITIALISED))
-    save_npz(Path(out_dir) / "object_poses.npz", R=state["R"], t=state["t"], confidence=state["confidence"],
+    save_npz(stage_dir / "object_poses.npz", R=state["R"], t=state["t"], confidence=state["confidence"],
              valid=valid, status=state["status"], frame_ids=session.frame_ids)
+    publish(stage_dir / "object_poses.npz", Path(out_dir) / "object_poses.npz")
     for i in range(0, session.num_frames, max(1, ocfg.overlay_every)):
         draw_overlay(session, tracker, int(session.frame_ids[i]), state["R"][i], state["t"][i],
                      stage_dir / "overlays" / f"{int(session.frame_ids[i]):06d}.jpg")

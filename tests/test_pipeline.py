@@ -67,10 +67,10 @@ def test_resume_skips_done_stage_and_redoes_changed_one(prepared):
 
 def test_unbuilt_or_unknown_stage_is_an_error_not_a_fake(tmp_path):
     with pytest.raises(StageError, match="not implemented yet"):
-        run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=global"]), progress=False)
+        run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=export"]), progress=False)
     with pytest.raises(StageError, match="unknown stage"):
         run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=dance"]), progress=False)
-    assert not (tmp_path / "global").exists()
+    assert not (tmp_path / "export").exists()
 
 
 def test_config_overrides_and_errors(tmp_path):
@@ -90,5 +90,5 @@ def test_cli_validate_and_run_errors(tmp_path, capsys):
     assert "cam" in capsys.readouterr().out
     assert main(["validate", str(tmp_path)]) == 1
     assert "session.yaml" in capsys.readouterr().out
-    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "global"]) == 2
+    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "export"]) == 2
     assert "not implemented yet" in capsys.readouterr().err

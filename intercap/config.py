@@ -132,6 +132,38 @@ class BodyConfig:
 
 
 @dataclass
+class GlobalConfig:
+    """The joint body-object stage over all frames (InterCap's global L-BFGS), in overlapping windows.
+
+    E_B reuses the body stage's terms and weights (section `body`); the weights
+    here are those of the terms the global stage adds."""
+
+    window_frames: int = 32  # frames optimised together; memory grows with it
+    window_overlap: int = 8  # frames a window shares with the next (re-optimised with more future)
+    window_history: int = 2  # of the shared frames, those held fixed at the previous window's result
+    steps: int = 15  # L-BFGS steps per window
+    inner_iterations: int = 8
+    ftol: float = 1.0e-6
+    correspondence_every: int = 5  # E_D / E_O data association refreshed every this many steps
+    object_points_per_view: int = 300  # object depth points per view for E_O
+    object_depth_scale_m: float = 0.02  # Geman-McClure scale of E_O's point-to-surface distance
+    sdf_resolution: int = 64  # object signed-distance grid cells along its longest side
+    contact_vertices: int = 20  # E_C: the nearest this many vertices of a touching region
+    hand_reach_m: float = 0.10  # a hand nearer than this to the object in a contact frame is grasping
+    w_object: float = 3.0e7  # E_O (mean over a frame's points, metres^2)
+    w_object_anchor: float = 1.0e6  # keeps frames without object depth near the tracked pose (m^2)
+    w_interpenetration: float = 3.0e6  # E_P (sum over body vertices)
+    w_contact: float = 5.0e7  # E_C (mean over the patch; a hand's keypoints resist ~1e7 per m^2)
+    w_hand_contact: float = 1.0e7  # E_C'
+    w_ground: float = 1.0e6  # E_G: per vertex; stiff, since keypoints of all views move together
+    w_object_acceleration: float = 30.0  # E_A, (m/s^2)^2 per frame
+    w_body_acceleration: float = 10.0  # acceleration of body vertices, (m/s^2)^2 per frame (30 oversmooths: BENCHMARKS.md)
+    w_body_motion_prior: float = 0.0  # E_S, learned (LEMO-style); see BENCHMARKS.md
+    w_hand_motion_prior: float = 0.0  # E_L + E_R, learned
+    seed: int = 0
+
+
+@dataclass
 class ContactConfig:
     """Which frames have body-object contact: annotated ranges, or detected (2D mask overlap, 3D distance)."""
 
@@ -164,6 +196,7 @@ class Config:
     object: ObjectConfig = field(default_factory=ObjectConfig)
     body: BodyConfig = field(default_factory=BodyConfig)
     contact: ContactConfig = field(default_factory=ContactConfig)
+    global_: GlobalConfig = field(default_factory=GlobalConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
 
@@ -182,6 +215,11 @@ def _coerce(value: Any, current: Any, key: str) -> Any:
         if not isinstance(parsed, bool):
             raise ConfigError(f"{key}: expected true/false, got {value!r}")
         return parsed
+    if isinstance(current, float) and isinstance(parsed, str):
+        try:
+            parsed = float(parsed)  # YAML reads 3e7 (no dot, no sign) as a string
+        except ValueError:
+            pass
     if isinstance(current, (int, float)) and not isinstance(parsed, (int, float)):
         raise ConfigError(f"{key}: expected a number, got {value!r}")
     if isinstance(current, float):
@@ -191,10 +229,15 @@ def _coerce(value: Any, current: Any, key: str) -> Any:
     return parsed
 
 
+# Sections whose name is a Python keyword: written `global` in YAML and overrides.
+KEYWORD_SECTIONS = {"global": "global_"}
+
+
 def _apply(node: Any, updates: dict, prefix: str = "") -> None:
     names = {f.name for f in dataclasses.fields(node)}
     for key, value in updates.items():
         path = f"{prefix}{key}"
+        key = KEYWORD_SECTIONS.get(key, key) if not prefix else key
         if key not in names:
             raise ConfigError(f"unknown config key {path!r}; known here: {sorted(names)}")
         current = getattr(node, key)
@@ -230,7 +273,8 @@ def load_config(yaml_path: str | Path | None = None, overrides: list[str] | None
 
 
 def config_to_dict(cfg: Config) -> dict:
-    return dataclasses.asdict(cfg)
+    spelled = {field: name for name, field in KEYWORD_SECTIONS.items()}
+    return {spelled.get(k, k): v for k, v in dataclasses.asdict(cfg).items()}
 
 
 def save_config(cfg: Config, path: str | Path) -> None:

@@ -144,3 +144,61 @@ def sphere_self_penetration(centres: torch.Tensor, radii: torch.Tensor, pairs: t
     overlap = torch.relu(radii[pairs[:, 0]] + radii[pairs[:, 1]] - gap)
     return (overlap * overlap).sum(-1)
 
+
+
+# ---------------------------------------------------------------------------
+# Global body-object stage: shapes (W frames, N body vertices, M object points).
+# Signed distances come from the object's SDF (positive outside, metres).
+# ---------------------------------------------------------------------------
+
+def object_point_to_surface(signed_distance: torch.Tensor, valid: torch.Tensor, scale: float) -> torch.Tensor:
+    """E_O, the mean over a frame's observed object points of rho(distance to the posed object's
+    surface), (W, P) -> (W,). Geman-McClure with `scale` metres (hand pixels that slipped into the
+    object mask saturate), scaled by scale^2 so a small offset costs its square in metres^2."""
+    rho = geman_mcclure(signed_distance, scale) * valid
+    return rho.sum(-1) / valid.sum(-1).clamp(min=1) * scale**2
+
+
+def pose_anchor(points: torch.Tensor, reference: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
+    """Mean squared distance of posed points (W, M, 3) to where the per-frame fit put them, times a
+    per-frame weight (W,) (its confidence; 0 where it has no trusted pose) -> (W,), metres^2."""
+    return (points - reference).pow(2).sum(-1).mean(-1) * weight
+
+
+def body_object_interpenetration(signed_distance: torch.Tensor) -> torch.Tensor:
+    """E_P, sum over body vertices of their depth inside the object squared, (W, N) -> (W,), metres^2."""
+    return torch.relu(-signed_distance).pow(2).sum(-1)
+
+
+def contact_chamfer(signed_distance: torch.Tensor, touching: torch.Tensor, count: int) -> torch.Tensor:
+    """E_C, for a body contact region that touches the object in a frame: the mean squared gap
+    between the object surface and the region's `count` vertices nearest to it (the patch that
+    should lie on the surface), (W, N) region vertices, touching (W,) bool -> (W,), metres^2.
+    Depth inside is E_P's business, so only gaps outside count."""
+    nearest = torch.topk(signed_distance, min(count, signed_distance.shape[-1]), dim=-1, largest=False).values
+    return torch.relu(nearest).pow(2).mean(-1) * touching
+
+
+def hand_contact(hand_vertices: torch.Tensor, grasp_points: torch.Tensor, grasping: torch.Tensor,
+                 count: int) -> torch.Tensor:
+    """E_C', a grasping hand's palm on the object's graspable parts: the mean squared distance of
+    the `count` hand-region vertices (W, N, 3) nearest to the graspable points (W, G, 3) to their
+    nearest graspable point, in frames where the hand grasps (W,) -> (W,), metres^2."""
+    distance = torch.cdist(hand_vertices, grasp_points).min(-1).values  # (W, N)
+    nearest = torch.topk(distance, min(count, distance.shape[-1]), dim=-1, largest=False).values
+    return nearest.pow(2).mean(-1) * grasping
+
+
+def ground_penetration(points: torch.Tensor, ground_point: torch.Tensor, ground_normal: torch.Tensor) -> torch.Tensor:
+    """E_G, sum over points (W, N, 3) of their depth below the ground plane squared -> (W,), metres^2."""
+    height = (points - ground_point) @ ground_normal
+    return torch.relu(-height).pow(2).sum(-1)
+
+
+def vertex_acceleration(points: torch.Tensor, fps: float) -> torch.Tensor:
+    """E_A on the object's points, and the plain smoothness term on body vertices: per frame the
+    mean squared acceleration of points (W, M, 3) by second differences -> (W,), (m/s^2)^2; the
+    first and last frame have none (0)."""
+    acc = (points[2:] - 2 * points[1:-1] + points[:-2]) * fps**2
+    per_frame = acc.pow(2).sum(-1).mean(-1)
+    return torch.nn.functional.pad(per_frame, (1, 1))

@@ -59,6 +59,12 @@ def _run_body(session, cfg, out_dir, progress):
     return body.run(session, cfg, out_dir, progress=progress)
 
 
+def _run_global(session, cfg, out_dir, progress):
+    from intercap import global_fit
+
+    return global_fit.run(session, cfg, out_dir, progress=progress)
+
+
 def _run_contact(session, cfg, out_dir, progress):
     from intercap import contact
 
@@ -71,6 +77,7 @@ STAGES: dict[str, Stage] = {
     "object": Stage("object", _run_object, ("object",)),
     "body": Stage("body", _run_body, ("detect", "body")),
     "contact": Stage("contact", _run_contact, ("contact",)),
+    "global": Stage("global", _run_global, ("body", "global_")),
 }
 
 

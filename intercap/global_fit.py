@@ -57,7 +57,7 @@ HANDS = ("left_hand", "right_hand")
 OUTPUT_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy", "object_poses.npz")
 
 
-class GlobalError(RuntimeError):
+class GlobalError(ValueError):
     pass
 
 
@@ -481,7 +481,8 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     from intercap.prepare import load_ground
 
     if session.object is None:
-        raise GlobalError("the session has no object: the global stage refines a body with an object")
+        log.info("global: the session has no object; the per-frame body results stand")
+        return {"skipped": "no object in session"}
     g = cfg.global_
     torch.manual_seed(g.seed)
     out_dir = Path(out_dir)

@@ -646,10 +646,10 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")
 
 
-def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras) -> dict:
-    """The SESSION_FORMAT.md files, kept in OUT/body/ and shown at OUT/ until the `global` stage
-    replaces them; frames without a fit are NaN."""
-    T = session.num_frames
+def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray, frame_ids, **extra) -> np.ndarray:
+    """PER_FRAME_FILES of SESSION_FORMAT.md into `folder`, frames not `valid` NaN; returns the
+    vertices (T, V, 3). `extra` arrays go into body_params.npz beside the parameters."""
+    T = len(valid)
     vertices = np.full((T, model.num_vertices, 3), np.nan, np.float32)
     keypoints = np.full((T, NUM_BODY_HANDS, 3), np.nan, np.float32)
     with torch.no_grad():
@@ -664,12 +664,20 @@ def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, ou
     for name in arrays:
         arrays[name][~valid] = np.nan
     shape_mean = arrays["shape"][valid].mean(0) if valid.any() else np.full(model.num_shape, np.nan)
+    save_npz(folder / "body_params.npz", model=np.array(model.name), **arrays, shape_mean=shape_mean.astype(np.float32),
+             valid=valid, frame_ids=frame_ids, **extra)
+    save_npy(folder / "body_vertices.npy", vertices)
+    save_npy(folder / "body_faces.npy", model.faces.cpu().numpy().astype(np.int64))
+    save_npy(folder / "keypoints3d.npy", keypoints)
+    return vertices
+
+
+def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras) -> dict:
+    """The SESSION_FORMAT.md files, kept in OUT/body/ and shown at OUT/ until the `global` stage
+    replaces them; frames without a fit are NaN."""
+    T = session.num_frames
     stage_dir = out_dir / "body"
-    save_npz(stage_dir / "body_params.npz", model=np.array(model.name), **arrays, shape_mean=shape_mean.astype(np.float32),
-             valid=valid, frame_ids=session.frame_ids, reprojection_px=reproj.astype(np.float32))
-    save_npy(stage_dir / "body_vertices.npy", vertices)
-    save_npy(stage_dir / "body_faces.npy", model.faces.cpu().numpy().astype(np.int64))
-    save_npy(stage_dir / "keypoints3d.npy", keypoints)
+    save_body_results(stage_dir, model, fitted, valid, session.frame_ids, reprojection_px=reproj.astype(np.float32))
     for name in PER_FRAME_FILES:
         publish(stage_dir / name, out_dir / name)
     for i in range(0, T, max(1, bcfg.overlay_every)):

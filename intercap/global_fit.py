@@ -43,11 +43,11 @@ from tqdm import tqdm
 
 from body_models import BodyParams, load_from_config
 from body_models.base import PARAM_FIELDS, BodyOutput, axis_angle_to_matrix, matrix_to_axis_angle
-from body_models.keypoints import NUM_BODY_HANDS
 from intercap import losses
-from intercap.body import PHASES, BodyFitter, BodyObservations, KeypointSource, PersonPoints, draw_overlay
+from intercap.body import (PHASES, BodyFitter, BodyObservations, KeypointSource, PersonPoints, draw_overlay,
+                           save_body_results)
 from intercap.cameras import Cameras
-from intercap.io import per_frame_result, publish, save_npy, save_npz
+from intercap.io import per_frame_result, publish, save_npz
 from intercap.optim import minimise
 
 log = logging.getLogger(__name__)
@@ -546,24 +546,7 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
     T = session.num_frames
     stage_dir = out_dir / "global"
     valid = per_frame.body_valid
-    vertices = np.full((T, model.num_vertices, 3), np.nan, np.float32)
-    keypoints = np.full((T, NUM_BODY_HANDS, 3), np.nan, np.float32)
-    with torch.no_grad():
-        for s in range(0, T, 16):
-            idx = np.arange(s, min(s + 16, T))
-            idx = idx[valid[idx]]
-            if len(idx):
-                out = model(fitted.map(lambda x: x[idx]))
-                vertices[idx] = out.vertices.cpu().numpy()
-                keypoints[idx] = out.keypoints[:, :NUM_BODY_HANDS].cpu().numpy()
-    arrays = fitted.to_numpy_dict()
-    for name in arrays:
-        arrays[name][~valid] = np.nan
-    save_npz(stage_dir / "body_params.npz", model=np.array(model.name), **arrays,
-             shape_mean=arrays["shape"][valid][0], valid=valid, frame_ids=session.frame_ids)
-    save_npy(stage_dir / "body_vertices.npy", vertices)
-    save_npy(stage_dir / "body_faces.npy", model.faces.cpu().numpy().astype(np.int64))
-    save_npy(stage_dir / "keypoints3d.npy", keypoints)
+    vertices = save_body_results(stage_dir, model, fitted, valid, session.frame_ids)
     ok = per_frame.object_valid
     R_out = np.where(ok[:, None, None], R.numpy(), np.nan).astype(np.float32)
     t_world = centre - (R @ shape.centroid)
@@ -589,7 +572,8 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
             for term, value in stats[when].items():
                 totals.setdefault(f"energy_{when}", {}).setdefault(term, 0.0)
                 totals[f"energy_{when}"][term] += value
-    return {**figures, **totals, "windows": len(history), "seconds_per_frame_fit": seconds / max(T, 1)}
+    return {**figures, **totals, "windows": len(history), "seconds_per_frame_fit": seconds / max(T, 1),
+            "evaluations": sum(h["evaluations"] for h in history), "steps": sum(h["steps"] for h in history)}
 
 
 def quality_figures(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, shape: ObjectShape,

@@ -18,7 +18,6 @@ from intercap.cameras import Cameras, project
 from intercap.config import load_config
 from intercap.global_fit import GlobalFitter, ObjectShape, WindowData, windows
 from intercap.io import save_npz, write_json
-from intercap.prepare import load_ground
 from intercap.session import Session
 
 GT = SAMPLE_SESSION / "ground_truth"
@@ -201,7 +200,7 @@ def test_window_seams_do_not_show(sample, model, tmp_path):
     elsewhere = np.setdiff1d(np.arange(T - 2), touching)
     # the windowed solution differs from the one-window one no more at the seams than elsewhere
     assert difference[touching].mean() < 1.5 * difference[elsewhere].mean() + 0.001, (difference[touching], difference[elsewhere])
-    assert acceleration(results[8])[touching].max() < acceleration(results[T]).max() + 0.001  # no spike
+    assert acceleration(results[8])[touching].max() < 1.05 * acceleration(results[T]).max()  # no spike
     truth = np.load(GT / "body_vertices.npy")
     with torch.no_grad():
         start = model(BodyParams.from_numpy_dict(noisy)).vertices.numpy()
@@ -231,3 +230,38 @@ def test_symmetric_look_alikes_are_unwrapped(sample):
     t_flipped[1::2] = t[1::2] + np.einsum("tij,j->ti", R[1::2], centre - flip @ centre)
     R_un, t_un = global_fit.unwrap_symmetry(R_flipped, t_flipped, np.ones(len(R), bool), mesh)
     assert np.abs(R_un - R).max() < 1e-6 and np.abs(t_un - t).max() < 1e-6
+
+
+def test_a_run_that_dies_resumes_where_it_stopped(sample, tmp_path, monkeypatch):
+    """The stage dies in its second window; the rerun keeps the first window's frames and gives
+    the same result as a run that never stopped."""
+    poses = np.load(GT / "object_poses.npz")
+    cfg = load_config(overrides=["global.window_frames=12", "global.window_overlap=4", "global.steps=2",
+                                 "body.overlay_every=1000"])
+    outs = {}
+    for name in ("whole", "resumed"):
+        outs[name] = tmp_path / name
+        write_per_frame(outs[name], sample, gt_body(), poses["R"], poses["t"], np.load(GT / "contact.npy"))
+    global_fit.run(sample, cfg, outs["whole"], progress=False)
+
+    calls = {"n": 0}
+    original = GlobalFitter.fit_window
+
+    def dies_in_window_two(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(GlobalFitter, "fit_window", dies_in_window_two)
+    with pytest.raises(KeyboardInterrupt):
+        global_fit.run(sample, cfg, outs["resumed"], progress=False)
+    saved = np.load(outs["resumed"] / "global" / "progress.npz")
+    assert int(saved["next_window"]) == 1
+    global_fit.run(sample, cfg, outs["resumed"], progress=False)
+    assert calls["n"] == 5  # the rerun fits windows 2-4 of 4: the first is not fitted again
+    for name in ("transl", "body_pose"):
+        a, b = (np.load(outs[k] / "body_params.npz")[name] for k in ("whole", "resumed"))
+        assert np.allclose(a, b, atol=1e-5), name
+    a, b = (np.load(outs[k] / "object_poses.npz")["t"] for k in ("whole", "resumed"))
+    assert np.allclose(a, b, atol=1e-5)

@@ -151,15 +151,15 @@ class GlobalConfig:
     contact_vertices: int = 20  # E_C: the nearest this many vertices of a touching region
     hand_reach_m: float = 0.10  # a hand nearer than this to the object in a contact frame is grasping
     w_object: float = 3.0e7  # E_O (mean over a frame's points, metres^2)
-    w_object_anchor: float = 1.0e6  # keeps frames without object depth near the tracked pose (m^2)
+    w_object_anchor: float = 1.0e8  # the tracked (rendered silhouette + depth) pose x its confidence: measured more exact than E_O alone
     w_interpenetration: float = 3.0e6  # E_P (sum over body vertices)
     w_contact: float = 5.0e7  # E_C (mean over the patch; a hand's keypoints resist ~1e7 per m^2)
     w_hand_contact: float = 1.0e7  # E_C'
     w_ground: float = 1.0e6  # E_G: per vertex; stiff, since keypoints of all views move together
     w_object_acceleration: float = 30.0  # E_A, (m/s^2)^2 per frame
     w_body_acceleration: float = 10.0  # acceleration of body vertices, (m/s^2)^2 per frame (30 oversmooths: BENCHMARKS.md)
-    w_body_motion_prior: float = 0.0  # E_S, learned (LEMO-style); see BENCHMARKS.md
-    w_hand_motion_prior: float = 0.0  # E_L + E_R, learned
+    w_body_motion_prior: float = 100.0  # E_S, learned (LEMO-style): with the acceleration term, better than either (BENCHMARKS.md)
+    w_hand_motion_prior: float = 20.0  # E_L + E_R, learned
     seed: int = 0
 
 

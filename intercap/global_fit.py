@@ -13,8 +13,9 @@ problem per window of frames:
     object's graspable vertices (`object.contact_vertices`), both only in the
     frames the `contact` stage marks; E_G, body and object above the ground;
   * E_A, the acceleration of the object's points; the acceleration of the
-    body's vertices; optionally the learned motion priors (E_S, E_L, E_R;
-    `intercap.motion_prior`; off by default, see BENCHMARKS.md).
+    body's vertices and the learned motion priors of body and hands (E_S,
+    E_L, E_R; `intercap.motion_prior`): together they measured better than
+    either alone (BENCHMARKS.md).
 Long sequences run in overlapping windows (memory stays bounded): each window
 after the first holds its first `window_history` frames fixed at the previous
 window's result, so velocity and acceleration run on across the seam, and a
@@ -48,6 +49,7 @@ from intercap.body import (PHASES, BodyFitter, BodyObservations, KeypointSource,
                            save_body_results)
 from intercap.cameras import Cameras
 from intercap.io import per_frame_result, publish, save_npz
+from intercap.motion_prior import MODEL_FPS
 from intercap.optim import minimise
 
 log = logging.getLogger(__name__)
@@ -356,7 +358,7 @@ class GlobalFitter:
         if len(vertices) >= 3:
             terms["object_acceleration"] = losses.vertex_acceleration(object_world, self.fps)
             terms["body_acceleration"] = losses.vertex_acceleration(vertices, self.fps)
-        if self.priors and len(vertices) >= 3:
+        if self.priors and len(vertices) >= 3 * max(1, round(self.fps / MODEL_FPS)):  # enough frames for its phases
             from intercap.motion_prior import body_motion_smoothness, hand_motion_smoothness
 
             up = None if self.ground is None else self.ground[1].to(vertices)

@@ -158,8 +158,8 @@ class GlobalConfig:
     w_ground: float = 1.0e6  # E_G: per vertex; stiff, since keypoints of all views move together
     w_object_acceleration: float = 30.0  # E_A, (m/s^2)^2 per frame
     w_body_acceleration: float = 10.0  # acceleration of body vertices, (m/s^2)^2 per frame (30 oversmooths: BENCHMARKS.md)
-    w_body_motion_prior: float = 100.0  # E_S, learned (LEMO-style): with the acceleration term, better than either (BENCHMARKS.md)
-    w_hand_motion_prior: float = 20.0  # E_L + E_R, learned
+    w_body_motion_prior: float = 0.0  # E_S, learned (LEMO-style); 100 helped drink, hurt pick (BENCHMARKS.md)
+    w_hand_motion_prior: float = 0.0  # E_L + E_R, learned; 20 with E_S above
     seed: int = 0
 
 

@@ -13,9 +13,9 @@ problem per window of frames:
     object's graspable vertices (`object.contact_vertices`), both only in the
     frames the `contact` stage marks; E_G, body and object above the ground;
   * E_A, the acceleration of the object's points; the acceleration of the
-    body's vertices and the learned motion priors of body and hands (E_S,
-    E_L, E_R; `intercap.motion_prior`): together they measured better than
-    either alone (BENCHMARKS.md).
+    body's vertices; the learned motion priors of body and hands (E_S, E_L,
+    E_R; `intercap.motion_prior`) when weighted (off by default: they helped
+    one benchmark session and hurt the other, BENCHMARKS.md).
 Long sequences run in overlapping windows (memory stays bounded): each window
 after the first holds its first `window_history` frames fixed at the previous
 window's result, so velocity and acceleration run on across the seam, and a

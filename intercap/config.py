@@ -138,7 +138,7 @@ class GlobalConfig:
     E_B reuses the body stage's terms and weights (section `body`); the weights
     here are those of the terms the global stage adds."""
 
-    window_frames: int = 32  # frames optimised together; memory grows with it
+    window_frames: int = 48  # frames optimised together; memory grows with it, the share fitted twice shrinks
     window_overlap: int = 8  # frames a window shares with the next (re-optimised with more future)
     window_history: int = 2  # of the shared frames, those held fixed at the previous window's result
     steps: int = 15  # L-BFGS steps per window

@@ -539,11 +539,12 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         bar.update(commit - (start + fixed))
     bar.close()
     return write_outputs(session, model, fitted, R_all, centre_all, shape, per_frame, seconds, history, out_dir,
-                         observations, cameras, cfg)
+                         observations, cameras, cfg, fitter.weight)
 
 
 def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectShape, per_frame: PerFrameResults,
-                  seconds: float, history: list, out_dir: Path, observations: Observations, cameras, cfg) -> dict:
+                  seconds: float, history: list, out_dir: Path, observations: Observations, cameras, cfg,
+                  weight) -> dict:
     """OUT/global/ files, shown at OUT/; frames the per-frame stages could not fit are NaN."""
     T = session.num_frames
     stage_dir = out_dir / "global"
@@ -568,12 +569,13 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
             draw_object(session, observations.tracker, fid, R_out[i], t_out[i],
                         stage_dir / "overlays" / f"object_{fid:06d}.jpg")
     figures = quality_figures(vertices, R_out, t_out, shape, per_frame, session.fps)
-    totals = {}
+    totals = {}  # each term's weighted energy summed over windows, before and after the fit
     for stats in history:
         for when in ("before", "after"):
             for term, value in stats[when].items():
                 totals.setdefault(f"energy_{when}", {}).setdefault(term, 0.0)
-                totals[f"energy_{when}"][term] += value
+                totals[f"energy_{when}"][term] += weight(term) * value
+    totals = {key: {term: float(f"{value:.4g}") for term, value in terms.items()} for key, terms in totals.items()}
     return {**figures, **totals, "windows": len(history), "seconds_per_frame_fit": seconds / max(T, 1),
             "evaluations": sum(h["evaluations"] for h in history), "steps": sum(h["steps"] for h in history)}
 

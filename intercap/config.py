@@ -100,7 +100,7 @@ class BodyConfig:
     """Per-frame whole-body fitting (multi-view PROX-D): E_J + E_D + priors, L-BFGS in phases."""
 
     use_session_masks: bool = True  # False: derive person masks from depth even when the session has them
-    batch_frames: int = 4  # frames fitted as one batch (warm-started from the previous batch)
+    batch_frames: int = 8  # frames fitted as one batch (warm-started from the previous batch); 4: +0.7 mm better, 1.6x slower
     min_keypoint_confidence: float = 0.2  # detections below this are ignored
     min_body_keypoints: int = 6  # a view counts for a frame when it has this many confident body keypoints
     min_points: int = 100  # a view's depth counts when its person mask gives this many points

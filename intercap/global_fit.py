@@ -413,7 +413,7 @@ class GlobalFitter:
         result = minimise(list(leaves.values()), energy, max_steps=g.steps, inner_iterations=g.inner_iterations,
                           ftol=g.ftol, monitor=refresh)
         with torch.no_grad():
-            body, R, centre = (x.detach() if torch.is_tensor(x) else x.detach() for x in current())
+            body, R, centre = (x.detach() for x in current())
             after = {k: float(v.sum()) for k, v in self.energy_terms(body, R, centre, data, state["matches"]).items()}
         stats = {"before": before, "after": after, "steps": result.steps, "evaluations": result.evaluations,
                  "stopped": result.stopped}

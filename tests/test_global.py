@@ -265,3 +265,14 @@ def test_a_run_that_dies_resumes_where_it_stopped(sample, tmp_path, monkeypatch)
         assert np.allclose(a, b, atol=1e-5), name
     a, b = (np.load(outs[k] / "object_poses.npz")["t"] for k in ("whole", "resumed"))
     assert np.allclose(a, b, atol=1e-5)
+
+
+def test_the_config_section_is_spelled_global(tmp_path):
+    from intercap.config import save_config
+
+    cfg = load_config(overrides=["global.steps=3", "global.w_object=3e7"])
+    assert cfg.global_.steps == 3 and cfg.global_.w_object == 3e7
+    save_config(cfg, tmp_path / "config.yaml")
+    text = (tmp_path / "config.yaml").read_text()
+    assert "\nglobal:\n" in text and "\nglobal_:" not in text
+    assert load_config(tmp_path / "config.yaml").global_.steps == 3

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import torch
 
-from body_models.base import BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix, matrix_to_axis_angle
-from body_models.keypoints import KEYPOINT_NAMES, NUM_BODY_HANDS
+from intercap.body_models.base import BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix, matrix_to_axis_angle
+from intercap.body_models.keypoints import KEYPOINT_NAMES, NUM_BODY_HANDS
 
 BACKENDS = ("anny", "smplx")
 
@@ -23,11 +23,11 @@ def load_body_model(
     anny needs nothing but its package (`cache_dir`: where its cache is built);
     smplx needs `model_dir`, the folder with the user's SMPL-X model files."""
     if name == "anny":
-        from body_models.anny_backend import AnnyBody
+        from intercap.body_models.anny_backend import AnnyBody
 
         return AnnyBody(device=device, dtype=dtype, cache_dir=cache_dir, **kwargs)
     if name == "smplx":
-        from body_models.smplx_backend import SmplxBody
+        from intercap.body_models.smplx_backend import SmplxBody
 
         return SmplxBody(model_dir=model_dir, device=device, dtype=dtype, **kwargs)
     raise ValueError(f"unknown body model {name!r}; choose one of {BACKENDS}")

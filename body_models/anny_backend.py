@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from body_models.base import BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix
-from body_models.keypoints import BODY_25, FINGERS, NUM_BODY_HANDS
-from body_models.regions import contact_regions, farthest_point_subsample, palm_normal
+from intercap.body_models.base import BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix
+from intercap.body_models.keypoints import BODY_25, FINGERS, NUM_BODY_HANDS
+from intercap.body_models.regions import contact_regions, farthest_point_subsample, palm_normal
 
 log = logging.getLogger(__name__)
 

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from body_models.base import BodyModel, BodyOutput, BodyParams
-from body_models.keypoints import NUM_ALL
-from body_models.regions import contact_regions, farthest_point_subsample, palm_normal
+from intercap.body_models.base import BodyModel, BodyOutput, BodyParams
+from intercap.body_models.keypoints import NUM_ALL
+from intercap.body_models.regions import contact_regions, farthest_point_subsample, palm_normal
 
 JOINTS = [
     "pelvis", "left_hip", "right_hip", "spine1", "left_knee", "right_knee", "spine2",

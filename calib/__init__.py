@@ -2,7 +2,7 @@
 calibration.json) and the check that aligns neighbouring cameras' point clouds."""
 from pathlib import Path
 
-from calib.alignment import PairAgreement, check_calibration, format_agreement, neighbour_pairs
+from intercap.calib.alignment import PairAgreement, check_calibration, format_agreement, neighbour_pairs
 
 RIGS_DIR = Path(__file__).resolve().parent / "rigs"
 

@@ -27,7 +27,7 @@ def __getattr__(name):
 
         return run_pipeline
     if name == "evaluate":
-        from intercap.evaluate import evaluate
+        from intercap.evaluation.evaluate import evaluate
 
         return evaluate
     raise AttributeError(f"module 'intercap' has no attribute {name!r}")

@@ -36,7 +36,8 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_eval(args) -> int:
-    from intercap.evaluate import evaluate, format_table, write_json
+    from intercap.evaluation.evaluate import evaluate
+    from intercap.evaluation.table import format_table, write_json
 
     result = evaluate(args.out, args.gt)
     print(format_table(result))
@@ -47,7 +48,7 @@ def _cmd_eval(args) -> int:
 
 
 def _cmd_synth(args) -> int:
-    from tools.synth import config_from_args, generate_session
+    from intercap.synth.generator import config_from_args, generate_session
 
     path = generate_session(config_from_args(args), args.out)
     print(f"synthetic session written to {path}")
@@ -81,7 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_eval)
 
     p = sub.add_parser("synth", help="write a synthetic session with ground truth")
-    from tools.synth import build_arg_parser
+    from intercap.synth.generator import build_arg_parser
 
     build_arg_parser(p)  # adds OUT and the generator's options
     p.set_defaults(func=_cmd_synth)

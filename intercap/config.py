@@ -180,6 +180,27 @@ class ContactConfig:
 
 
 @dataclass
+class PhysicsConfig:
+    """Forces, torques and free flight from the 4D result (the `physics` stage)."""
+
+    seed: int = 0
+
+
+@dataclass
+class ExportConfig:
+    """Meshes and one dataset file from the results (the `export` stage)."""
+
+    seed: int = 0
+
+
+@dataclass
+class ReportConfig:
+    """Mesh overlays and the HTML report written at the end of `intercap run`."""
+
+    seed: int = 0
+
+
+@dataclass
 class RunConfig:
     """What `intercap run` does."""
 
@@ -197,6 +218,9 @@ class Config:
     body: BodyConfig = field(default_factory=BodyConfig)
     contact: ContactConfig = field(default_factory=ContactConfig)
     global_: GlobalConfig = field(default_factory=GlobalConfig)
+    physics: PhysicsConfig = field(default_factory=PhysicsConfig)
+    export: ExportConfig = field(default_factory=ExportConfig)
+    report: ReportConfig = field(default_factory=ReportConfig)
     run: RunConfig = field(default_factory=RunConfig)
 
 

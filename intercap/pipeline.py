@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 from intercap.config import Config, save_config
-from intercap.io import read_json, write_json
+from intercap.io.files import read_json, write_json
 
 log = logging.getLogger(__name__)
 
@@ -36,37 +36,37 @@ class Stage:
 
 
 def _run_prepare(session, cfg, out_dir, progress):
-    from intercap import prepare
+    from intercap.stages import prepare
 
     return prepare.run(session, cfg, out_dir, progress=progress)
 
 
 def _run_object(session, cfg, out_dir, progress):
-    from intercap import object as object_stage
+    from intercap.stages import object as object_stage
 
     return object_stage.run(session, cfg, out_dir, progress=progress)
 
 
 def _run_detect(session, cfg, out_dir, progress):
-    from intercap import detect
+    from intercap.stages import detect
 
     return detect.run(session, cfg, out_dir, progress=progress)
 
 
 def _run_body(session, cfg, out_dir, progress):
-    from intercap import body
+    from intercap.stages import body
 
     return body.run(session, cfg, out_dir, progress=progress)
 
 
 def _run_global(session, cfg, out_dir, progress):
-    from intercap import global_fit
+    from intercap.stages import global_fit
 
     return global_fit.run(session, cfg, out_dir, progress=progress)
 
 
 def _run_contact(session, cfg, out_dir, progress):
-    from intercap import contact
+    from intercap.stages import contact
 
     return contact.run(session, cfg, out_dir, progress=progress)
 

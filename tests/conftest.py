@@ -262,3 +262,14 @@ def trimmed_copy(src: Path, dst: Path, frames: int) -> Path:
         np.savez(gt / "body_params.npz", **{k: (v[:frames] if v.ndim else v) for k, v in params.items()})
     (gt / "info.json").unlink(missing_ok=True)
     return dst
+
+
+# A tilted floor (up is not a world axis): ground-plane and calibration tests share it.
+FLOOR_NORMAL = np.array([0.1, -0.98, 0.15]) / np.linalg.norm([0.1, -0.98, 0.15])  # up, not a world axis
+FLOOR_POINT = np.array([0.3, 1.1, -0.4])
+
+
+def floor_basis(up):
+    e1 = np.cross(up, [0.0, 0.0, 1.0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(up, e1)

@@ -39,11 +39,11 @@ SESSIONS = {
 
 def point_cloud_distance_mm(session_dir: Path, out_dir: Path) -> float:
     """Mean over fitted frames of the median distance from the person points (all views) to the fitted mesh."""
-    from intercap.body import PersonPoints
-    from intercap.cameras import Cameras
     from intercap.config import Config
-    from intercap.evaluate import TriangleSurface
+    from intercap.geometry.cameras import Cameras
+    from intercap.geometry.surfaces import TriangleSurface
     from intercap.session import Session
+    from intercap.stages.body import PersonPoints
 
     session = Session.load(session_dir)
     cfg = Config().body
@@ -64,7 +64,7 @@ def point_cloud_distance_mm(session_dir: Path, out_dir: Path) -> float:
 
 def fit_and_score(session: Path, out: Path, overrides: list[str]) -> dict:
     from intercap.config import load_config
-    from intercap.evaluate import evaluate
+    from intercap.evaluation.evaluate import evaluate
     from intercap.pipeline import run_pipeline
 
     cfg = load_config(overrides=["run.force=true", *overrides])
@@ -92,7 +92,7 @@ def main(argv=None) -> None:
                         help="config override, e.g. body.batch_frames=4 (repeatable)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    from tools.synth import SynthConfig, generate_session
+    from intercap.synth.generator import SynthConfig, generate_session
 
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench_body_"))
     rows = []

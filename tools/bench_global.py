@@ -40,7 +40,7 @@ PER_FRAME_FILES = {"body": ("body_params.npz", "body_vertices.npy", "body_faces.
 
 
 def make_session(name: str, root: Path, width: int, height: int) -> Path:
-    from tools.synth import SynthConfig, generate_session
+    from intercap.synth.generator import SynthConfig, generate_session
 
     script, obj, frames, phenotype, cams = SESSIONS[name]
     path = root / name
@@ -75,7 +75,7 @@ def seam_jitter(vertices: np.ndarray, gt: np.ndarray, fps: float, plan) -> tuple
 
 
 def score(out: Path, session: Path) -> dict:
-    from intercap.evaluate import evaluate
+    from intercap.evaluation.evaluate import evaluate
 
     m = evaluate(out, session).metrics
     pick = ("body_surface_mm", "keypoint_mpjpe_mm", "hand_keypoint_mm", "object_add_mm", "object_adds_mm",
@@ -86,8 +86,8 @@ def score(out: Path, session: Path) -> dict:
 
 def run_session(name: str, root: Path, overrides: list[str], width: int, height: int) -> dict:
     from intercap.config import load_config
-    from intercap.global_fit import windows
     from intercap.pipeline import available_stages, run_pipeline
+    from intercap.stages.global_fit import windows
 
     session = make_session(name, root, width, height)
     out = root / f"out_{name}"

@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from intercap import motion_prior as mp  # noqa: E402
+from intercap.energies import motion_prior as mp  # noqa: E402
 from tools import train_motion_prior as tm  # noqa: E402
 
 TUNE_CLIPS = ("01_05", "02_07", "03_03")  # training clips used only to choose the weights
@@ -71,7 +71,7 @@ def corrupt(clean: torch.Tensor, kind: str, gen: torch.Generator, groups: torch.
     if kind == "frames":
         axis = torch.nn.functional.normalize(torch.randn(T, 3, generator=gen), dim=-1)
         angle = torch.randn(T, 1, generator=gen) * math.radians(2.0)
-        from body_models import axis_angle_to_matrix
+        from intercap.body_models import axis_angle_to_matrix
 
         R = axis_angle_to_matrix(axis * angle)  # (T, 3, 3)
         centre = clean.mean(1, keepdim=True)
@@ -299,7 +299,7 @@ def pose_experiment(args, model, prior: mp.MotionPrior, obj: Objective) -> None:
 
 def speed(prior_kind: str) -> None:
     """Forward + backward of the learned prior on full anny vertex tracks."""
-    from body_models import load_body_model
+    from intercap.body_models import load_body_model
 
     model = load_body_model("anny")
     for T in (90, 300):
@@ -328,7 +328,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    from body_models import load_body_model
+    from intercap.body_models import load_body_model
 
     t0, c0 = time.time(), time.process_time()
     model = load_body_model("anny")

@@ -29,7 +29,7 @@ SCRIPTS = {"box": "pick_place", "cup": "lift_drink", "chair": "push_chair"}
 
 def track_and_score(session: Path, out: Path, masks: bool) -> dict:
     from intercap.config import load_config
-    from intercap.evaluate import evaluate
+    from intercap.evaluation.evaluate import evaluate
     from intercap.pipeline import run_pipeline
 
     cfg = load_config(overrides=[f"object.use_session_masks={str(masks).lower()}", "run.force=true"])
@@ -66,7 +66,7 @@ def main(argv=None) -> None:
     parser.add_argument("--keep", type=Path, help="keep the sessions and results here")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    from tools.synth import SynthConfig, generate_session
+    from intercap.synth.generator import SynthConfig, generate_session
 
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench_object_"))
     rows = []

@@ -70,10 +70,10 @@ def run_prepare(session_dir: Path, out_dir: Path, overrides: list[str]) -> tuple
 
 def time_clouds(session_dir: Path) -> float:
     """Seconds per frame to read and back-project every view (rays cached, as the stage does)."""
-    from intercap.cameras import Cameras
     from intercap.config import PrepareConfig
-    from intercap.prepare import ViewClouds
+    from intercap.geometry.cameras import Cameras
     from intercap.session import Session
+    from intercap.stages.prepare import ViewClouds
 
     session = Session.load(session_dir)
     clouds = ViewClouds(session, Cameras.from_infos(session.cameras), PrepareConfig())
@@ -99,7 +99,7 @@ def main(argv=None) -> None:
     try:
         session = args.session
         if session is None:
-            from tools.synth import SynthConfig, generate_session
+            from intercap.synth.generator import SynthConfig, generate_session
 
             cfg = SynthConfig(cameras=args.cameras, width=args.width, height=args.height, frames=args.frames, quiet=True)
             t0 = time.perf_counter()

@@ -22,8 +22,8 @@ import numpy as np
 import torch
 import trimesh
 
-from intercap.cameras import Cameras
-from intercap.rendering import MeshTopology, object_crops, render
+from intercap.geometry.cameras import Cameras
+from intercap.geometry.rendering import MeshTopology, object_crops, render
 
 IMAGE_W, IMAGE_H = 640, 576
 KINECT_DIST = [0.55, -0.05, 1e-4, -2e-4, 0.002, 0.9, 0.05, 0.01]  # k1 k2 p1 p2 k3 k4 k5 k6, mild net distortion
@@ -31,7 +31,7 @@ KINECT_DIST = [0.55, -0.05, 1e-4, -2e-4, 0.002, 0.9, 0.05, 0.01]  # k1 k2 p1 p2 
 
 def bench_meshes() -> dict:
     """name -> trimesh, in object coordinates (metres)."""
-    from tools.objects import box_mesh, chair_mesh, cup_mesh
+    from intercap.synth.objects import box_mesh, chair_mesh, cup_mesh
 
     return {
         "box12": trimesh.creation.box(extents=(0.30, 0.20, 0.15)),

@@ -1,4 +1,4 @@
-"""Train the learned motion smoothness priors (intercap/motion_prior.py) on the CMU mocap in ../shared/data.
+"""Train the learned motion smoothness priors (intercap/energies/motion_prior.py) on the CMU mocap in ../shared/data.
 
     python tools/train_motion_prior.py                  # both priors, writes intercap/data/motion_prior_*.npz
     python tools/train_motion_prior.py --cache /tmp/cmu_markers.npz   # keep the retargeted markers for reruns
@@ -43,7 +43,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from intercap import motion_prior as mp  # noqa: E402
+from intercap.energies import motion_prior as mp  # noqa: E402
 from tools import cmu_mocap  # noqa: E402
 
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "cmu_mocap"
@@ -358,7 +358,7 @@ def main(argv=None) -> int:
     if args.latent:
         SETTINGS["body"]["latent"], SETTINGS["hand"]["latent"] = args.latent
 
-    from body_models import load_body_model
+    from intercap.body_models import load_body_model
 
     t0, c0 = time.time(), time.process_time()
     model = load_body_model("anny")

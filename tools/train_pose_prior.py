@@ -30,7 +30,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
-from intercap import priors  # noqa: E402
+from intercap.energies import priors  # noqa: E402
 from tools import cmu_mocap  # noqa: E402
 
 DEFAULT_DATA = ROOT.parent / "shared" / "data" / "cmu_mocap"
@@ -173,7 +173,7 @@ def main(argv=None) -> int:
     parser.add_argument("--report", type=Path, default=None, help="also write the figures as JSON here")
     args = parser.parse_args(argv)
 
-    from body_models import load_body_model
+    from intercap.body_models import load_body_model
 
     t0 = time.time()
     model = load_body_model("anny")

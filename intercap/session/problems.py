@@ -1,0 +1,132 @@
+"""What can be wrong with a session: `Problem`, `SessionError` and the checks of
+matrices (intrinsics, rotations, rigid transforms) that reading and validation share."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+ROTATION_TOL = 1e-4  # calibration and initial poses: orthonormality / det tolerance
+
+
+GT_ROTATION_TOL = 1e-3  # ground-truth poses may be stored as float32
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One thing wrong with a session: which file (relative to the session root) and what."""
+
+    path: str
+    message: str
+    fatal: bool
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.message}"
+
+
+class SessionError(Exception):
+    """The session cannot be used; `.problems` lists every fatal problem found (and the warnings)."""
+
+    def __init__(self, root: Path | str, problems: list[Problem]):
+        self.root = Path(root)
+        self.problems = list(problems)
+        fatal = [p for p in self.problems if p.fatal]
+        lines = [f"session {self.root} cannot be used ({len(fatal)} fatal problems):"]
+        lines += [f"  {p}" for p in fatal]
+        super().__init__("\n".join(lines))
+
+
+class ProblemList(list):
+    """A list of Problem with shorthands; paths are made relative to the session root."""
+
+    def __init__(self, root: Path):
+        super().__init__()
+        self.root = root
+
+    def rel(self, path: Path | str) -> str:
+        path = Path(path)
+        try:
+            rel = path.relative_to(self.root)
+        except ValueError:
+            return str(path)
+        return rel.as_posix() if rel.parts else "."
+
+    def fatal(self, path: Path | str, message: str) -> None:
+        self.append(Problem(self.rel(path), message, True))
+
+    def warn(self, path: Path | str, message: str) -> None:
+        self.append(Problem(self.rel(path), message, False))
+
+    @property
+    def any_fatal(self) -> bool:
+        return any(p.fatal for p in self)
+
+
+def intrinsics_issue(K: Any) -> str | None:
+    """Why K is not a pinhole matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0 (None if it is)."""
+    try:
+        K = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "K is not a 3x3 matrix of numbers"
+    if K.shape != (3, 3):
+        return f"K is not 3x3 (shape {K.shape})"
+    if not np.all(np.isfinite(K)):
+        return "K has non-finite entries"
+    zeros = np.array([K[0, 1], K[1, 0], K[2, 0], K[2, 1]])
+    if np.any(np.abs(zeros) > 1e-9) or abs(K[2, 2] - 1.0) > 1e-9:
+        return "K is not of the form [[fx,0,cx],[0,fy,cy],[0,0,1]]"
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        return f"K has non-positive focal length (fx={K[0, 0]:g}, fy={K[1, 1]:g})"
+    return None
+
+
+def rotation_issue(R: Any, tol: float = ROTATION_TOL) -> str | None:
+    """Why R is not a rotation matrix (orthonormal, det +1), or None."""
+    try:
+        R = np.asarray(R, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "is not a 3x3 matrix of numbers"
+    if R.shape != (3, 3):
+        return f"is not 3x3 (shape {R.shape})"
+    if not np.all(np.isfinite(R)):
+        return "has non-finite entries"
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    if err > tol:
+        return f"is not orthonormal (max |R^T R - I| = {err:.2g})"
+    det = np.linalg.det(R)
+    if abs(det - 1.0) > tol:
+        return f"has determinant {det:.4g}, not +1 (a reflection)"
+    return None
+
+
+def rigid_transform_issue(T: Any, tol: float = ROTATION_TOL) -> str | None:
+    """Why T is not a 4x4 rigid transform [[R, t], [0, 0, 0, 1]], or None."""
+    try:
+        T = np.asarray(T, dtype=np.float64)
+    except (TypeError, ValueError):
+        return "is not a 4x4 matrix of numbers"
+    if T.shape != (4, 4):
+        return f"is not 4x4 (shape {T.shape})"
+    if not np.all(np.isfinite(T)):
+        return "has non-finite entries"
+    if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
+        return f"last row is {T[3].tolist()}, not [0, 0, 0, 1]"
+    issue = rotation_issue(T[:3, :3], tol)
+    return None if issue is None else f"rotation part {issue}"
+
+
+def format_frame_list(ids: Iterable[int], limit: int = 20) -> str:
+    """'3, 7-9, 12' for [3, 7, 8, 9, 12]; long lists are cut after `limit` runs."""
+    ids = sorted(int(i) for i in ids)
+    runs: list[tuple[int, int]] = []
+    for i in ids:
+        if runs and i == runs[-1][1] + 1:
+            runs[-1] = (runs[-1][0], i)
+        else:
+            runs.append((i, i))
+    parts = [str(a) if a == b else f"{a}-{b}" for a, b in runs[:limit]]
+    if len(runs) > limit:
+        parts.append("...")
+    return ", ".join(parts)

@@ -1,0 +1,330 @@
+"""The session layer: read and check one capture session folder.
+
+The folder layout is the contract in SESSION_FORMAT.md. Two entry points:
+
+* `Session.load(path)` checks structure and existence (YAML/JSON content,
+  calibration matrices, camera folders, frame files, the object mesh, ground
+  truth shapes) plus the first colour and depth frame of each camera, and
+  raises `SessionError` listing every fatal problem at once.
+* `validate(path)` does the same and also decodes every frame file once, so a
+  corrupt JPEG, a depth PNG that is not uint16 or an image of the wrong size is
+  found before a long run. It never raises for problems in the session's
+  content; it returns them all.
+
+A missing or unreadable frame file is a dropped frame for that view: a warning,
+never fatal. The readers return None for it.
+"""
+from __future__ import annotations
+
+import json
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Iterable
+
+import cv2
+import numpy as np
+
+from intercap.session.format import (
+    GT_FILES,
+    KIND_DIRS,
+    KIND_EXTS,
+    KINDS,
+    OPTIONAL_KINDS,
+    CameraInfo,
+    GroundTruth,
+    ObjectInfo,
+    decode_image,
+    depth_format_issue,
+    is_int,
+    size_issue,
+)
+from intercap.session.openpose import openpose_to_array
+from intercap.session.problems import Problem, ProblemList, SessionError, format_frame_list
+
+IO_WORKERS = max(1, min(8, (os.cpu_count() or 2) * 2))
+
+
+class Session:
+    """A loaded capture session; read frames with the read_* methods (None = dropped frame)."""
+
+    def __init__(
+        self,
+        *,
+        root: Path,
+        fps: float,
+        cameras: list[CameraInfo],
+        frame_ids: np.ndarray,
+        object: ObjectInfo | None,
+        contact_frames: list[tuple[int, int]] | None,
+        ground: tuple[np.ndarray, np.ndarray] | None,
+        body_model: str,
+        problems: list[Problem],
+        files: list[dict[str, dict[int, Path] | None]],
+        has_ground_truth: bool,
+    ):
+        self.root = root
+        self.fps = fps
+        self.cameras = cameras
+        self.frame_ids = frame_ids  # (T,) int64, contiguous
+        self.object = object
+        self.contact_frames = contact_frames
+        self.ground = ground
+        self.body_model = body_model
+        self.problems = problems  # non-fatal warnings; read_* append files they find unusable
+        self._files = files  # per camera: kind -> {frame index: path} (None: folder absent)
+        self._has_ground_truth = has_ground_truth
+        self._bad: set[Path] = set()  # files found unusable (dropped)
+        self._reported: set[Problem] = set(problems)
+        self._lock = threading.Lock()
+
+    # -- loading ----------------------------------------------------------------
+    @classmethod
+    def load(cls, path: Path | str) -> "Session":
+        """Load a session folder; raises SessionError listing every fatal problem at once."""
+        from intercap.session.validate import inspect_session  # validate builds Sessions: import at call time
+
+        session, problems = inspect_session(Path(path), deep=False)
+        if session is None:
+            raise SessionError(path, problems)
+        return session
+
+    def __repr__(self) -> str:
+        return f"Session({str(self.root)!r}, {self.num_cameras} cameras, {self.num_frames} frames, {self.fps:g} fps)"
+
+    # -- basic facts ------------------------------------------------------------
+    @property
+    def num_frames(self) -> int:
+        return int(len(self.frame_ids))
+
+    @property
+    def num_cameras(self) -> int:
+        return len(self.cameras)
+
+    @property
+    def camera_names(self) -> list[str]:
+        return [c.name for c in self.cameras]
+
+    def _cam_index(self, cam: str | int | CameraInfo) -> int:
+        if isinstance(cam, CameraInfo):
+            cam = cam.name
+        if is_int(cam):
+            if not -self.num_cameras <= cam < self.num_cameras:
+                raise IndexError(f"camera index {cam} out of range ({self.num_cameras} cameras)")
+            return int(cam) % self.num_cameras
+        for i, c in enumerate(self.cameras):
+            if c.name == cam:
+                return i
+        raise KeyError(f"no camera {cam!r} in {self.root} (cameras: {', '.join(self.camera_names)})")
+
+    def camera(self, name_or_index: str | int) -> CameraInfo:
+        return self.cameras[self._cam_index(name_or_index)]
+
+    # -- files ------------------------------------------------------------------
+    def frame_path(self, cam: str | int, kind: str, frame_id: int) -> Path:
+        """Where a frame file is (or would be); color: the .jpg or .png that exists (.jpg if neither)."""
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {', '.join(KINDS)}, got {kind!r}")
+        c = self._cam_index(cam)
+        have = self._files[c][kind]
+        if have is not None and int(frame_id) in have:
+            return have[int(frame_id)]
+        folder = self.root / self.cameras[c].name / KIND_DIRS[kind]
+        stem = f"{int(frame_id):06d}"
+        for ext in KIND_EXTS[kind]:
+            if (folder / (stem + ext)).is_file():
+                return folder / (stem + ext)
+        return folder / (stem + KIND_EXTS[kind][0])
+
+    def _usable_path(self, c: int, kind: str, frame_id: int) -> Path | None:
+        have = self._files[c][kind]
+        path = None if have is None else have.get(int(frame_id))
+        return None if path is None or path in self._bad else path
+
+    def _drop(self, path: Path, message: str) -> None:
+        """Record a file found unusable while reading: it becomes a dropped frame, with a warning."""
+        with self._lock:
+            if path in self._bad:
+                return
+            self._bad.add(path)
+            self.problems.append(Problem(ProblemList(self.root).rel(path), message, False))
+
+    def _read_image(self, c: int, kind: str, frame_id: int, flags: int) -> np.ndarray | None:
+        path = self._usable_path(c, kind, frame_id)
+        if path is None:
+            return None
+        img, reason = decode_image(path, flags)
+        if img is None:
+            self._drop(path, reason)
+            return None
+        if kind == "depth":
+            issue = depth_format_issue(img)
+            if issue:
+                self._drop(path, issue + "; treated as a dropped frame")
+                return None
+        issue = size_issue(img, self.cameras[c])
+        if issue:
+            self._drop(path, issue + "; treated as a dropped frame")
+            return None
+        return img
+
+    def read_color(self, cam: str | int, frame_id: int) -> np.ndarray | None:
+        """(H, W, 3) uint8 RGB, or None for a dropped/unreadable frame."""
+        img = self._read_image(self._cam_index(cam), "color", frame_id, cv2.IMREAD_COLOR)
+        return None if img is None else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+    def read_depth(self, cam: str | int, frame_id: int) -> np.ndarray | None:
+        """(H, W) float32 metres (0 = no measurement), or None for a dropped/unreadable frame."""
+        img = self._read_image(self._cam_index(cam), "depth", frame_id, cv2.IMREAD_UNCHANGED)
+        return None if img is None else img.astype(np.float32) / np.float32(1000.0)
+
+    def read_mask(self, cam: str | int, frame_id: int, kind: str) -> np.ndarray | None:
+        """(H, W) bool (pixel > 127) for kind 'person' or 'object'; None when absent/unreadable."""
+        if kind not in ("person", "object"):
+            raise ValueError(f"mask kind must be 'person' or 'object', got {kind!r}")
+        img = self._read_image(self._cam_index(cam), f"mask_{kind}", frame_id, cv2.IMREAD_GRAYSCALE)
+        return None if img is None else img > 127
+
+    def read_keypoints(self, cam: str | int, frame_id: int) -> np.ndarray | None:
+        """(137, 3) float32 [x, y, conf] of the first person (BODY_25, left hand, right hand, face);
+        missing parts have confidence 0; None when the file is absent or unreadable."""
+        path = self._usable_path(self._cam_index(cam), "keypoints", frame_id)
+        if path is None:
+            return None
+        try:
+            kp, issues = openpose_to_array(json.loads(path.read_text()))
+        except (OSError, UnicodeDecodeError, ValueError) as exc:
+            self._drop(path, f"unreadable keypoints: {exc}; treated as a dropped frame")
+            return None
+        if issues:
+            problem = Problem(ProblemList(self.root).rel(path), "; ".join(issues), False)
+            with self._lock:
+                if problem not in self._reported:
+                    self._reported.add(problem)
+                    self.problems.append(problem)
+        return kp
+
+    def read_depth_batch(self, frame_ids: Iterable[int]) -> np.ndarray:
+        """(T, C, H, W) float32 metres for the given frames, 0 where a view dropped the frame.
+        All cameras must share one image size (else ValueError: read per camera instead)."""
+        ids = np.asarray(list(frame_ids) if not isinstance(frame_ids, np.ndarray) else frame_ids, np.int64)
+        ids = ids.reshape(-1)
+        sizes = {(c.height, c.width) for c in self.cameras}
+        if len(sizes) != 1:
+            listed = ", ".join(f"{c.name} {c.width}x{c.height}" for c in self.cameras)
+            raise ValueError(f"read_depth_batch needs equal image sizes, cameras differ ({listed}); use read_depth")
+        H, W = sizes.pop()
+        out = np.zeros((len(ids), self.num_cameras, H, W), np.float32)  # (T, C, H, W)
+
+        def fill(job: tuple[int, int]) -> None:
+            t, c = job
+            depth = self.read_depth(c, int(ids[t]))
+            if depth is not None:
+                out[t, c] = depth
+
+        jobs = [(t, c) for t in range(len(ids)) for c in range(self.num_cameras)]
+        if len(jobs) <= 4:
+            for job in jobs:
+                fill(job)
+        else:
+            with ThreadPoolExecutor(max_workers=IO_WORKERS) as pool:  # cv2 decodes without the GIL
+                list(pool.map(fill, jobs))
+        return out
+
+    def availability(self) -> dict[str, np.ndarray]:
+        """kind -> (C, T) bool: which frame files exist (and were not found unusable) per camera and frame."""
+        result = {}
+        for kind in KINDS:
+            avail = np.zeros((self.num_cameras, self.num_frames), bool)
+            for c in range(self.num_cameras):
+                have = self._files[c][kind]
+                if have:
+                    usable = [i for i, p in have.items() if p not in self._bad]
+                    avail[c] = np.isin(self.frame_ids, usable)
+            result[kind] = avail
+        return result
+
+    def has_kind(self, kind: str) -> list[bool]:
+        """Per camera: whether its folder for `kind` exists (optional inputs may be absent)."""
+        return [self._files[c][kind] is not None for c in range(self.num_cameras)]
+
+    # -- ground truth -------------------------------------------------------------
+    def ground_truth(self) -> GroundTruth | None:
+        """The arrays of ground_truth/ (None if the session has none); shapes were checked at load."""
+        if not self._has_ground_truth:
+            return None
+        gt = self.root / "ground_truth"
+        gt_data = GroundTruth()
+        if (gt / "body_vertices.npy").is_file():
+            gt_data.body_vertices = np.load(gt / "body_vertices.npy").astype(np.float32, copy=False)
+        if (gt / "body_faces.npy").is_file():
+            gt_data.body_faces = np.load(gt / "body_faces.npy").astype(np.int64, copy=False)
+        if (gt / "object_poses.npz").is_file():
+            with np.load(gt / "object_poses.npz") as z:
+                gt_data.object_R = z["R"].astype(np.float64)
+                gt_data.object_t = z["t"].astype(np.float64)
+        if (gt / "contact.npy").is_file():
+            gt_data.contact = np.load(gt / "contact.npy").astype(bool)
+        if (gt / "keypoints3d.npy").is_file():
+            gt_data.keypoints3d = np.load(gt / "keypoints3d.npy").astype(np.float32, copy=False)
+        return gt_data
+
+    # -- report -------------------------------------------------------------------
+    def summary(self) -> str:
+        """Human-readable overview: cameras, frames, dropped frames per view and kind, inputs, object, gt."""
+        T = self.num_frames
+        avail = self.availability()
+        lines = [f"Session {self.root}"]
+        lines.append(
+            f"  {T} frames ({self.frame_ids[0]}..{self.frame_ids[-1]}) at {self.fps:g} fps"
+            if T
+            else "  no frames"
+        )
+        everywhere_missing = ~(avail["color"] | avail["depth"]).any(axis=0)
+        if everywhere_missing.any():
+            lines.append(f"  gap (no view has the frame): {format_frame_list(self.frame_ids[everywhere_missing])}")
+        lines.append(f"  {self.num_cameras} cameras:")
+        width = max(len(n) for n in self.camera_names)
+        for c, cam in enumerate(self.cameras):
+            parts = []
+            for kind in KINDS:
+                if self._files[c][kind] is None:
+                    continue
+                dropped = self.frame_ids[~avail[kind][c] & ~everywhere_missing]
+                label = KIND_DIRS[kind]
+                parts.append(f"{label} " + (f"{dropped.size} dropped ({format_frame_list(dropped, 6)})" if dropped.size else "ok"))
+            dist = f"dist {cam.dist.size}" if cam.dist.size else "no distortion"
+            lines.append(f"    {cam.name:<{width}}  {cam.width}x{cam.height}  {dist}  " + "; ".join(parts))
+        optional = []
+        for kind in OPTIONAL_KINDS:
+            n = sum(self.has_kind(kind))
+            optional.append(f"{KIND_DIRS[kind]} {n}/{self.num_cameras} cameras")
+        lines.append("  optional inputs: " + ", ".join(optional))
+        if self.object is None:
+            lines.append("  object: none (body only)")
+        else:
+            o = self.object
+            mesh = o.load_mesh()
+            extra = [f"{len(mesh.vertices)} vertices", f"{len(mesh.faces)} faces"]
+            if o.mass_kg is not None:
+                extra.append(f"{o.mass_kg:g} kg")
+            if o.contact_vertices is not None:
+                extra.append(f"{len(o.contact_vertices)} contact vertices")
+            extra.append("initial pose given" if o.initial_pose is not None else "initial pose estimated")
+            lines.append(f"  object: {o.name} ({o.mesh_path.name}; {', '.join(extra)})")
+        if self.contact_frames is not None:
+            lines.append("  contact frames (annotated): " + ", ".join(f"{a}-{b}" for a, b in self.contact_frames))
+        if self.ground is not None:
+            p, n = self.ground
+            lines.append(f"  ground: given (point {np.round(p, 3).tolist()}, normal {np.round(n, 3).tolist()})")
+        else:
+            lines.append("  ground: estimated from the data")
+        lines.append(f"  body model: {self.body_model}")
+        if self._has_ground_truth:
+            gt = self.root / "ground_truth"
+            have = [name.split(".")[0] for name in GT_FILES if (gt / name).is_file()]
+            lines.append("  ground truth: " + ", ".join(have))
+        else:
+            lines.append("  ground truth: none")
+        return "\n".join(lines)

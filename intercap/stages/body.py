@@ -1,0 +1,692 @@
+"""The `body` stage: per-frame whole-body fitting to multi-view keypoints and depth (PROX-D).
+
+For every frame the body model (anny by default) is fitted to
+  * E_J, the 2D keypoints of every view (BODY_25 + both hands; the session's
+    OpenPose JSON, or the `detect` stage's), reprojected through each camera
+    with its lens distortion, Geman-McClure robust, weighted by confidence^2;
+  * E_D, each view's segmented person points against the body vertices that
+    view can see (visibility by a coarse z-buffer of the whole mesh plus the
+    normal facing the camera, recomputed at every L-BFGS step);
+  * priors: learned body-pose mixture + anatomical joint limits + extreme
+    elbow/knee bending, finger ranges, shape, expression, and self-penetration
+    approximated by spheres along the limbs and trunk (see `BodySpheres`).
+As SMPLify-X, in phases (`PHASES`): orientation and translation from the torso
+keypoints, then pose and shape from all keypoints, then everything with the
+depth term. Frames are fitted in batches (one L-BFGS over the batch; the frames
+do not interact), initialised per frame by aligning the previous batch's pose
+to the triangulated torso keypoints. A frame with too little evidence (see
+`usable_frames`) is marked invalid and written as NaN, never invented.
+
+Outputs (SESSION_FORMAT.md): body_params.npz (the model's parameters per
+frame, `model`, `valid`, per-frame `shape` and its sequence mean `shape_mean`),
+body_vertices.npy, body_faces.npy, keypoints3d.npy, kept in OUT/body/ (with
+the resumable checkpoint and overlay pictures) and shown at OUT/ until the
+`global` stage replaces them with its own.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from intercap.body_models import BodyParams, load_from_config
+from intercap.body_models.base import axis_angle_to_matrix, matrix_to_axis_angle
+from intercap.body_models.keypoints import BODY_25, BODY_25_EDGES, NUM_BODY, NUM_BODY_HANDS
+from intercap.energies import losses, priors
+from intercap.energies.optim import minimise
+from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
+from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
+
+log = logging.getLogger(__name__)
+
+SHAPE_EPS = 1e-3  # shape logits start at most this close to the ends of [0, 1]
+# Bones the keypoints cannot see: they stay at rest.
+FROZEN_BONE_PREFIXES = ("toe", "eye", "pelvis")
+TORSO_KEYPOINTS = [BODY_25.index(n) for n in
+                   ("neck", "right_shoulder", "left_shoulder", "mid_hip", "right_hip", "left_hip")]
+# What the orient phase fits: the trunk and the legs, so a tilt of the trunk is not taken for a
+# tilt of the whole body.
+ORIENT_KEYPOINTS = TORSO_KEYPOINTS + [BODY_25.index(n) for n in
+                                      ("right_knee", "left_knee", "right_ankle", "left_ankle")]
+
+
+# ---------------------------------------------------------------------------
+# Observations
+# ---------------------------------------------------------------------------
+
+@dataclass
+class BodyObservations:
+    """What a batch of frames gives the fit. B frames, C views, K = 67 keypoints, P points per view."""
+
+    frame_ids: np.ndarray  # (B,)
+    keypoints: torch.Tensor  # (B, C, K, 3) pixels x, y and confidence (0 = not detected)
+    points: torch.Tensor  # (B, C, P, 3) segmented person points, world
+    point_valid: torch.Tensor  # (B, C, P) bool
+
+    @property
+    def batch_size(self) -> int:
+        return int(self.keypoints.shape[0])
+
+
+class KeypointSource:
+    """Per view and frame, the (137, 3) OpenPose keypoints: the session's JSON where every camera has
+    them, otherwise what the `detect` stage wrote under OUT/detect/."""
+
+    def __init__(self, session, out_dir: Path, use_session: bool = True):
+        from intercap.stages.detect import keypoints_path
+
+        self.session = session
+        self.out_dir = Path(out_dir)
+        self._path = keypoints_path
+        self.from_session = use_session and all(session.has_kind("keypoints"))
+        if not self.from_session and not (self.out_dir / "detect" / "DONE.json").exists():
+            raise RuntimeError(
+                "the body fit needs 2D keypoints: the session has none for some cameras and the `detect` stage "
+                f"has not run into {self.out_dir}; run `intercap run SESSION --out OUT` (detect runs before body)"
+            )
+
+    def read(self, c: int, frame_id: int) -> np.ndarray | None:
+        if self.from_session:
+            return self.session.read_keypoints(c, frame_id)
+        from intercap.session import openpose_to_array
+
+        path = self._path(self.out_dir, self.session.camera_names[c], frame_id)
+        if not path.exists():
+            return None
+        return openpose_to_array(read_json(path))[0]
+
+    def batch(self, frame_ids: np.ndarray, min_confidence: float) -> np.ndarray:
+        """(B, C, 67, 3) float32; confidences below `min_confidence` (and missing views) read 0."""
+        out = np.zeros((len(frame_ids), self.session.num_cameras, NUM_BODY_HANDS, 3), np.float32)
+        for b, f in enumerate(frame_ids):
+            for c in range(self.session.num_cameras):
+                kp = self.read(c, int(f))
+                if kp is not None:
+                    out[b, c] = kp[:NUM_BODY_HANDS]
+        out[..., 2] = np.where(out[..., 2] >= min_confidence, out[..., 2], 0.0)
+        return out
+
+
+class PersonPoints:
+    """Segmented person points per view: the session's person masks, or depth foreground minus the
+    object (its mask, or its tracked pose rendered) inside the keypoints' bounding box."""
+
+    def __init__(self, session, cameras: Cameras, cfg, out_dir: Path):
+        self.session = session
+        self.cameras = cameras
+        self.cfg = cfg
+        self.use_masks = cfg.use_session_masks and all(session.has_kind("mask_person"))
+        self.rays = [pixel_rays(cameras.select([c]), cam.height, cam.width)[0] for c, cam in enumerate(session.cameras)]
+        self._background = None
+        self._object = None
+        poses = per_frame_result(out_dir, "object", "object_poses.npz")
+        if not self.use_masks and session.object is not None and poses.exists():
+            data = np.load(poses)
+            mesh = session.object.load_mesh()
+            self._object = (np.asarray(mesh.vertices), np.asarray(mesh.faces), data["R"], data["t"],
+                            {int(f): i for i, f in enumerate(data["frame_ids"])})
+
+    def _backgrounds(self) -> list[np.ndarray]:
+        from intercap.geometry.segmentation import background_depth
+        from intercap.stages.prepare import spread_frames
+
+        if self._background is None:
+            ids = spread_frames(self.session.frame_ids, 30)
+            stacks = [[self.session.read_depth(c, int(f)) for f in ids] for c in range(self.session.num_cameras)]
+            self._background = [
+                background_depth(np.stack([d for d in stack if d is not None])) for stack in stacks
+            ]
+        return self._background
+
+    def object_mask(self, c: int, frame_id: int, shape) -> np.ndarray:
+        mask = self.session.read_mask(c, frame_id, "object") if self.session.has_kind("mask_object")[c] else None
+        if mask is None and self._object is not None:
+            from intercap.stages.object import hard_silhouettes
+
+            vertices, faces, R, t, index = self._object
+            i = index.get(frame_id)
+            if i is not None and np.isfinite(R[i]).all():
+                world = vertices @ R[i].T + t[i]
+                mask = hard_silhouettes(world, faces, self.cameras.select([c]), [shape])[0]
+        if mask is None:
+            return np.zeros(shape, bool)
+        return cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+
+    def mask(self, c: int, frame_id: int, depth: np.ndarray, keypoints: np.ndarray) -> np.ndarray | None:
+        if self.use_masks:
+            mask = self.session.read_mask(c, frame_id, "person")
+        else:
+            from intercap.geometry.segmentation import foreground_mask
+
+            mask = foreground_mask(depth, self._backgrounds()[c]) & ~self.object_mask(c, frame_id, depth.shape)
+            seen = keypoints[:, 2] > 0
+            if seen.sum() < 3:
+                return None
+            lo, hi = keypoints[seen, :2].min(0), keypoints[seen, :2].max(0)
+            pad = 0.15 * (hi - lo).max()
+            box = np.zeros_like(mask)
+            x0, y0 = np.maximum(np.floor(lo - pad), 0).astype(int)
+            x1, y1 = np.ceil(hi + pad).astype(int)
+            box[y0:y1 + 1, x0:x1 + 1] = True
+            mask &= box
+        if mask is None:
+            return None
+        erode = int(round(self.cfg.person_erode_px * mask.shape[1] / 640))
+        if erode > 0:
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1))
+            mask = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
+        return mask
+
+    def batch(self, frame_ids: np.ndarray, keypoints: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, C, P, 3) world points and (B, C, P) validity; P = cfg.points_per_view, a seeded random
+        subset of the masked pixels with depth."""
+        B, C, P = len(frame_ids), self.session.num_cameras, self.cfg.points_per_view
+        points = np.zeros((B, C, P, 3), np.float32)
+        valid = np.zeros((B, C, P), bool)
+        T = self.cameras.T_world_from_cam.numpy()
+        for b, f in enumerate(frame_ids):
+            rng = np.random.default_rng([self.cfg.seed, int(f)])
+            for c in range(C):
+                depth = self.session.read_depth(c, int(f))
+                if depth is None:
+                    continue
+                mask = self.mask(c, int(f), depth, keypoints[b, c])
+                if mask is None:
+                    continue
+                pick = np.flatnonzero((mask & (depth > 0.2)).reshape(-1))
+                if len(pick) < self.cfg.min_points:
+                    continue
+                pick = rng.choice(pick, size=min(P, len(pick)), replace=False)
+                z = depth.reshape(-1)[pick]
+                xy = self.rays[c][pick].numpy()
+                cam = np.concatenate([xy * z[:, None], z[:, None]], 1)
+                points[b, c, :len(pick)] = cam @ T[c, :3, :3].T + T[c, :3, 3]
+                valid[b, c, :len(pick)] = True
+        return torch.from_numpy(points), torch.from_numpy(valid)
+
+
+def usable_frames(keypoints: torch.Tensor, point_valid: torch.Tensor, cfg) -> torch.Tensor:
+    """(B,) bool: enough evidence for a fit. Two views with >= min_body_keypoints confident body
+    keypoints, or one such view plus one view's depth points; anything less is marked, not fitted."""
+    kp_views = ((keypoints[:, :, :NUM_BODY, 2] > 0).sum(-1) >= cfg.min_body_keypoints).sum(-1)  # (B,)
+    depth_views = (point_valid.sum(-1) >= cfg.min_points).sum(-1)
+    return (kp_views >= 2) | ((kp_views >= 1) & (depth_views >= 1))
+
+
+# ---------------------------------------------------------------------------
+# Geometry helpers
+# ---------------------------------------------------------------------------
+
+def triangulate(keypoints: torch.Tensor, cameras: Cameras) -> tuple[torch.Tensor, torch.Tensor]:
+    """Confidence-weighted DLT over views: (B, C, K, 3) pixels + confidence -> (B, K, 3) world points
+    and (B, K) validity (seen by at least two views, in front of them)."""
+    B, C, K, _ = keypoints.shape
+    pixels = keypoints[..., :2].permute(1, 0, 2, 3).reshape(C, B * K, 2)
+    xy = undistort(_remove_intrinsics(pixels, cameras.K), cameras.dist)  # (C, BK, 2)
+    P = cameras.T_cam_from_world[:, :3, :]  # (C, 3, 4) normalised projection matrices
+    conf = keypoints[..., 2].permute(1, 0, 2).reshape(C, B * K)  # (C, BK)
+    rows_x = xy[..., 0:1] * P[:, None, 2] - P[:, None, 0]  # (C, BK, 4)
+    rows_y = xy[..., 1:2] * P[:, None, 2] - P[:, None, 1]
+    A = torch.cat([rows_x, rows_y], 0) * torch.cat([conf, conf], 0)[..., None]  # (2C, BK, 4)
+    A = A.permute(1, 0, 2)  # (BK, 2C, 4)
+    _, _, Vh = torch.linalg.svd(A.double())
+    X = Vh[:, -1]  # (BK, 4)
+    w = X[:, 3:]
+    points = (X[:, :3] / torch.where(w.abs() > 1e-12, w, torch.full_like(w, 1e-12))).to(keypoints.dtype)
+    seen = (conf > 0).sum(0) >= 2
+    z = (points[None] @ P[:, :, :3].transpose(1, 2))[..., 2] + P[:, None, 2, 3]  # (C, BK)
+    in_front = ((z > 0) | (conf == 0)).all(0)
+    return points.view(B, K, 3), (seen & in_front).view(B, K)
+
+
+def weighted_kabsch(source: torch.Tensor, target: torch.Tensor, weight: torch.Tensor):
+    """Rotation R (B, 3, 3) and translation t (B, 3) minimising sum w |R s + t - x|^2, (B, K, 3) inputs."""
+    w = weight[..., None] / weight.sum(1).clamp(min=1e-9)[:, None, None]
+    mu_s, mu_t = (w * source).sum(1), (w * target).sum(1)
+    H = ((source - mu_s[:, None]) * w).transpose(1, 2) @ (target - mu_t[:, None])  # (B, 3, 3)
+    U, _, Vh = torch.linalg.svd(H)
+    d = torch.sign(torch.det(Vh.transpose(1, 2) @ U.transpose(1, 2)))
+    D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], -1))
+    R = Vh.transpose(1, 2) @ D @ U.transpose(1, 2)
+    return R, mu_t - (R @ mu_s[..., None])[..., 0]
+
+
+def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """(B, V, 3) unit area-weighted vertex normals."""
+    tri = vertices[:, faces]  # (B, F, 3, 3)
+    face_normals = torch.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1)
+    normals = torch.zeros_like(vertices).index_add_(1, faces.reshape(-1), face_normals.repeat_interleave(3, 1))
+    return torch.nn.functional.normalize(normals, dim=-1)
+
+
+def visible_vertices(
+    vertices: torch.Tensor, normals: torch.Tensor, subset: torch.Tensor, cameras: Cameras,
+    cells: int, margin: float,
+) -> torch.Tensor:
+    """(B, C, N) bool: which of the `subset` vertices each view sees. A coarse z-buffer of all
+    vertices (cells x cells*H/W grid) plus the normal facing the camera; no gradient."""
+    with torch.no_grad():
+        B, V, _ = vertices.shape
+        C = len(cameras)
+        pix, z = project(vertices.reshape(1, B * V, 3).expand(C, -1, -1), cameras)  # (C, BV, 2), (C, BV)
+        cell = (cameras.width.to(pix.dtype) / cells)[:, None, None]
+        grid_w = cells
+        grid_h = int(torch.ceil((cameras.height.to(pix.dtype) / cell[:, 0, 0]).max()))
+        uv = torch.floor(pix / cell).long()
+        inside = (z > 0.05) & (uv[..., 0] >= 0) & (uv[..., 0] < grid_w) & (uv[..., 1] >= 0) & (uv[..., 1] < grid_h)
+        frame = torch.arange(B, device=vertices.device).repeat_interleave(V)[None].expand(C, -1)
+        key = (frame * grid_h + uv[..., 1].clamp(0, grid_h - 1)) * grid_w + uv[..., 0].clamp(0, grid_w - 1)
+        zbuf = torch.full((C, B * grid_h * grid_w), float("inf"), dtype=z.dtype, device=z.device)
+        zbuf.scatter_reduce_(1, key, torch.where(inside, z, torch.full_like(z, float("inf"))), "amin")
+        nearest = zbuf.gather(1, key)  # (C, BV)
+        seen = inside & (z <= nearest + margin)
+        seen = seen.view(C, B, V)[:, :, subset].permute(1, 0, 2)  # (B, C, N)
+        to_camera = cameras.centers[None, :, None, :] - vertices[:, None, subset]  # (B, C, N, 3)
+        facing = (to_camera * normals[:, None, subset]).sum(-1) > 0
+        return seen & facing
+
+
+@dataclass
+class BodySpheres:
+    """Self-penetration proxy: spheres placed along bones (joint-to-joint interpolation), radius from
+    the rest mesh (distance of the bone's own vertices to the bone axis, 0.8 of its median so the
+    rest pose does not touch itself); pairs of spheres on different, non-adjacent segments."""
+
+    start: torch.Tensor  # (S,) joint index of the segment start
+    end: torch.Tensor  # (S,) joint index of the segment end
+    fraction: torch.Tensor  # (S,) position along the segment
+    radii: torch.Tensor  # (S,)
+    pairs: torch.Tensor  # (Q, 2)
+
+    SEGMENTS = {  # name: (from bone head, to bone head)
+        "spine_low": ("spine05", "spine03"), "spine_high": ("spine03", "neck01"), "head": ("neck03", "head"),
+        "upperarm.L": ("upperarm01.L", "lowerarm01.L"), "forearm.L": ("lowerarm01.L", "wrist.L"),
+        "upperarm.R": ("upperarm01.R", "lowerarm01.R"), "forearm.R": ("lowerarm01.R", "wrist.R"),
+        "thigh.L": ("upperleg01.L", "lowerleg01.L"), "shin.L": ("lowerleg01.L", "foot.L"),
+        "thigh.R": ("upperleg01.R", "lowerleg01.R"), "shin.R": ("lowerleg01.R", "foot.R"),
+    }
+    ADJACENT = {("spine_low", "spine_high"), ("spine_high", "head"), ("upperarm.L", "forearm.L"),
+                ("upperarm.R", "forearm.R"), ("thigh.L", "shin.L"), ("thigh.R", "shin.R"),
+                ("spine_high", "upperarm.L"), ("spine_high", "upperarm.R"), ("spine_low", "thigh.L"),
+                ("spine_low", "thigh.R"), ("thigh.L", "thigh.R")}
+
+    @classmethod
+    def from_model(cls, model, per_segment: int = 4) -> "BodySpheres":
+        params = model.init_params(1)
+        with torch.no_grad():
+            out = model(params)
+        vertices = out.vertices[0].double()
+        joints = out.joints[0].double()
+        index = {n: i for i, n in enumerate(model.joint_names)}
+        start, end, fraction, radii, segment = [], [], [], [], []
+        for name, (a, b) in cls.SEGMENTS.items():
+            pa, pb = joints[index[a]], joints[index[b]]
+            axis = pb - pa
+            length = axis.norm()
+            rel = vertices - pa
+            along = (rel @ axis) / length**2
+            radial = (rel - along[:, None] * axis).norm(dim=1)
+            for k in range(per_segment):
+                s = (k + 0.5) / per_segment
+                near = (along - s).abs() < 0.5 / per_segment
+                close = near & (radial < 0.25)
+                r = 0.8 * float(radial[close].quantile(0.3)) if close.sum() > 10 else 0.03
+                start.append(index[a]); end.append(index[b]); fraction.append(s); radii.append(r); segment.append(name)
+        pairs = []
+        for i in range(len(segment)):
+            for j in range(i + 1, len(segment)):
+                a, b = segment[i], segment[j]
+                if a != b and (a, b) not in cls.ADJACENT and (b, a) not in cls.ADJACENT:
+                    pairs.append((i, j))
+        spheres = cls(torch.tensor(start), torch.tensor(end), torch.tensor(fraction, dtype=torch.float32),
+                      torch.tensor(radii, dtype=torch.float32), torch.tensor(pairs))
+        centres = spheres.centres(out.joints.float())
+        resting = losses.sphere_self_penetration(centres, spheres.radii, spheres.pairs)
+        if float(resting) > 0:  # e.g. arms close to the trunk at rest: those pairs are dropped
+            gap = (centres[0, spheres.pairs[:, 0]] - centres[0, spheres.pairs[:, 1]]).norm(dim=-1)
+            keep = gap > spheres.radii[spheres.pairs[:, 0]] + spheres.radii[spheres.pairs[:, 1]]
+            spheres.pairs = spheres.pairs[keep]
+        return spheres
+
+    def centres(self, joints: torch.Tensor) -> torch.Tensor:
+        """(B, J, 3) posed joints -> (B, S, 3) sphere centres."""
+        f = self.fraction.to(joints)[None, :, None]
+        return joints[:, self.start] * (1 - f) + joints[:, self.end] * f
+
+
+# ---------------------------------------------------------------------------
+# The fit
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Phase:
+    """One SMPLify-X-style phase: which variables move, which terms count, how long."""
+
+    name: str
+    variables: tuple[str, ...]
+    terms: tuple[str, ...]
+    steps_key: str  # BodyConfig field holding its L-BFGS step budget
+    rho_key: str = "keypoint_rho"  # BodyConfig field holding E_J's robust scale in this phase
+
+
+PHASES = (
+    Phase("orient", ("global_orient", "transl"), ("orient_keypoints",), "orient_steps", "keypoint_rho_start"),
+    Phase("pose", ("global_orient", "transl", "body_pose", "shape"),
+          ("keypoints", "pose_prior", "joint_limits", "bending", "shape"), "pose_steps", "keypoint_rho_start"),
+    Phase("full", ("global_orient", "transl", "body_pose", "shape", "left_hand_pose", "right_hand_pose", "expression"),
+          ("keypoints", "depth", "pose_prior", "joint_limits", "bending", "hand_prior", "shape", "expression",
+           "penetration"), "full_steps"),
+)
+
+
+class BodyFitter:
+    """Fits batches of frames; holds the model, cameras, priors' tables and the sphere proxy."""
+
+    def __init__(self, model, cameras: Cameras, cfg):
+        self.model = model
+        self.cameras = cameras
+        self.cfg = cfg
+        names = model.body_joint_names
+        self.free_bones = torch.tensor([i for i, n in enumerate(names) if not n.startswith(FROZEN_BONE_PREFIXES)])
+        focal = cameras.K[:, 0, 0]
+        self.scale_px = focal / 1000.0  # (C,)
+        weights = torch.ones(NUM_BODY_HANDS)
+        weights[NUM_BODY:] = cfg.hand_keypoint_weight
+        self.joint_weights = weights
+        orient = torch.zeros(NUM_BODY_HANDS)
+        orient[ORIENT_KEYPOINTS] = 1.0
+        self.orient_weights = orient
+        self.subset = model.fitting_subsample.to(cameras.K.device)
+        self.spheres = BodySpheres.from_model(model)
+
+    # -- initialisation -------------------------------------------------------------
+    def initialise(self, obs: BodyObservations, template: BodyParams) -> BodyParams:
+        """Per frame: the template's pose and shape, turned about its own up axis and moved so its
+        torso keypoints meet the triangulated ones (weighted, closed form).
+
+        Only the heading is taken from the keypoints: a full rotation fitted to the shoulders and
+        hips of a bending trunk tilts the whole body and swings the legs a metre off, while the
+        heading of the trunk is stable; the orient phase then fits the tilt with the legs in view.
+        Frames without triangulated torso keypoints are moved to their depth points' centroid."""
+        B = obs.batch_size
+        params = template.map(lambda t: t[-1:].expand(B, *t.shape[1:]).clone())
+        target, seen = triangulate(obs.keypoints, self.cameras)
+        target, seen = target[:, TORSO_KEYPOINTS], seen[:, TORSO_KEYPOINTS]
+        with torch.no_grad():
+            placed = self.model(params).keypoints[:, TORSO_KEYPOINTS]  # (B, 6, 3) template as placed
+        w = seen.to(placed.dtype)
+        count = w.sum(1)
+        mean = lambda x: (x * w[..., None]).sum(1) / count.clamp(min=1)[:, None]  # noqa: E731
+        R0 = axis_angle_to_matrix(params.global_orient)  # (B, 3, 3)
+        up = R0 @ torch.as_tensor(self.model.up_axis, dtype=R0.dtype)  # (B, 3)
+        a = placed - mean(placed)[:, None]
+        b = target - mean(target)[:, None]
+        sin = (torch.cross(a, b, dim=-1) * up[:, None]).sum(-1).mul(w).sum(1)
+        cos = ((a * b).sum(-1) - (a * up[:, None]).sum(-1) * (b * up[:, None]).sum(-1)).mul(w).sum(1)
+        yaw = torch.where(count >= 2, torch.atan2(sin, cos), torch.zeros_like(sin))
+        turn = axis_angle_to_matrix(up * yaw[:, None])  # about the up axis through the torso centre
+        params.global_orient.copy_(matrix_to_axis_angle(turn @ R0).to(params.global_orient))
+        centre = mean(placed)
+        params.transl.copy_(((params.transl - centre)[:, None] @ turn.transpose(1, 2))[:, 0] + centre)
+        params.transl[count >= 1] += (mean(target) - centre)[count >= 1]
+        lone = (count == 0) & obs.point_valid.flatten(1).any(1)
+        if lone.any():
+            valid = obs.point_valid[lone].flatten(1, 2)[..., None].to(obs.points.dtype)
+            centroid = (obs.points[lone].flatten(1, 2) * valid).sum(1) / valid.sum(1)
+            params.transl[lone] += centroid - placed[lone].mean(1)
+        return params
+
+    # -- energy ----------------------------------------------------------------------
+    def energy_terms(self, params: BodyParams, obs: BodyObservations, terms, matches=None,
+                     rho: float | None = None, out=None) -> dict[str, torch.Tensor]:
+        """Each active term per frame, (B,), unweighted. `matches`: E_D's (nearest, normals) from
+        `correspondences`, needed when "depth" is among the terms; `rho`: E_J's robust scale
+        (default cfg.keypoint_rho); `out`: the model's output for `params` whose first vertices
+        are the fitting subsample, when the caller has it already."""
+        if out is None:
+            out = self.model.sparse_forward(params, self.subset)  # vertices: the fitting subsample only
+        C = len(self.cameras)
+        B, K = out.keypoints.shape[0], NUM_BODY_HANDS
+        result = {}
+        if "keypoints" in terms or "orient_keypoints" in terms:
+            pix, z = project(out.keypoints.reshape(1, B * K, 3).expand(C, -1, -1), self.cameras)
+            pix = pix.view(C, B, K, 2).transpose(0, 1)
+            conf = obs.keypoints[..., 2] * (z.view(C, B, K).transpose(0, 1) > 0.05)
+            weights = self.orient_weights if "orient_keypoints" in terms else self.joint_weights
+            result["keypoints"] = losses.keypoint_reprojection(
+                pix, obs.keypoints[..., :2], conf, weights, self.scale_px, rho or self.cfg.keypoint_rho)
+        if "depth" in terms:
+            nearest, normals = matches
+            result["depth"] = losses.point_to_visible_vertices(
+                obs.points, obs.point_valid, out.vertices[:, :len(self.subset)], normals, nearest,
+                self.cfg.depth_scale_m)
+        if "pose_prior" in terms:
+            result["pose_prior"] = priors.learned_pose_prior(params.body_pose)
+        if "joint_limits" in terms:
+            result["joint_limits"] = priors.joint_limit_penalty(params.body_pose)
+        if "bending" in terms:
+            result["bending"] = priors.extreme_bending(params.body_pose)
+        if "hand_prior" in terms:
+            result["hand_prior"] = (priors.hand_pose_prior(params.left_hand_pose, "L")
+                               + priors.hand_pose_prior(params.right_hand_pose, "R"))
+        if "shape" in terms:
+            result["shape"] = priors.shape_prior(params.shape)
+        if "expression" in terms and self.cfg.fit_expression:
+            result["expression"] = priors.expression_prior(params.expression)
+        if "penetration" in terms:
+            result["penetration"] = losses.sphere_self_penetration(
+                self.spheres.centres(out.joints), self.spheres.radii.to(out.joints), self.spheres.pairs)
+        return result
+
+    def weight(self, term: str) -> float:
+        return getattr(self.cfg, f"w_{term}")
+
+    def correspondences(self, params: BodyParams, obs: BodyObservations) -> tuple[torch.Tensor, torch.Tensor]:
+        """E_D's data association, refreshed once per L-BFGS step (as ICP): per point the nearest
+        fitting vertex its view sees (B, C, P), and the fitting vertices' normals (B, N, 3)."""
+        with torch.no_grad():
+            vertices = self.model(params).vertices
+            normals = vertex_normals(vertices, self.model.faces)
+            visible = visible_vertices(vertices, normals, self.subset, self.cameras,
+                                       self.cfg.visibility_cells, self.cfg.visibility_margin_m)
+            nearest = losses.nearest_visible_vertices(obs.points, vertices[:, self.subset], visible)
+        return nearest, normals[:, self.subset]
+
+    def fit(self, obs: BodyObservations, init: BodyParams, monitor=None) -> tuple[BodyParams, dict]:
+        """Run PHASES from `init`; returns the fitted parameters and per-frame figures."""
+        params = init.clone()
+        free = self.free_bones
+        stats = {}
+        for phase in PHASES:
+            names = [n for n in phase.variables if n != "expression" or self.cfg.fit_expression]
+            leaves = {n: getattr(params, n).detach().clone() for n in names}
+            if "body_pose" in leaves:
+                leaves["body_pose"] = params.body_pose[:, free].detach().clone()
+            if "shape" in leaves:  # optimised as a logit: anny's phenotypes extrapolate wildly outside [0, 1]
+                leaves["shape"] = torch.logit(params.shape.detach().clamp(SHAPE_EPS, 1 - SHAPE_EPS))
+            state = {"matches": None}
+
+            def current() -> BodyParams:
+                values = {n: leaves.get(n, getattr(params, n).detach()) for n in
+                          ("shape", "global_orient", "transl", "left_hand_pose", "right_hand_pose", "expression")}
+                if "shape" in leaves:
+                    values["shape"] = torch.sigmoid(leaves["shape"])
+                body_pose = params.body_pose.detach()
+                if "body_pose" in leaves:
+                    body_pose = body_pose.index_copy(1, free, leaves["body_pose"])
+                return BodyParams(body_pose=body_pose, **values)
+
+            def energy() -> torch.Tensor:
+                terms = self.energy_terms(current(), obs, phase.terms, state["matches"],
+                                          getattr(self.cfg, phase.rho_key))
+                return sum(self.weight(k) * v.sum() for k, v in terms.items())
+
+            def refresh(step, value):
+                if "depth" in phase.terms:
+                    state["matches"] = self.correspondences(current(), obs)
+                if monitor is not None:
+                    monitor(phase.name, step, value)
+
+            if "depth" in phase.terms:
+                state["matches"] = self.correspondences(current(), obs)
+            result = minimise(list(leaves.values()), energy, max_steps=getattr(self.cfg, phase.steps_key),
+                              inner_iterations=self.cfg.inner_iterations, ftol=self.cfg.ftol, monitor=refresh)
+            params = current().detach()
+            stats[phase.name] = {"energy": result.energy, "steps": result.steps,
+                                 "evaluations": result.evaluations, "stopped": result.stopped}
+        with torch.no_grad():
+            final = self.energy_terms(params, obs, PHASES[-1].terms, self.correspondences(params, obs))
+        stats["terms"] = {k: v.detach().cpu().numpy() for k, v in final.items()}
+        return params, stats
+
+
+# ---------------------------------------------------------------------------
+# The stage
+# ---------------------------------------------------------------------------
+
+def reprojection_error_px(model, params: BodyParams, obs: BodyObservations, cameras: Cameras) -> np.ndarray:
+    """(B,) median pixel distance between fitted and detected keypoints over all views."""
+    with torch.no_grad():
+        kps = model(params).keypoints
+        B, K = kps.shape[:2]
+        pix, z = project(kps.reshape(1, B * K, 3).expand(len(cameras), -1, -1), cameras)
+        pix = pix.view(len(cameras), B, K, 2).transpose(0, 1)
+        err = (pix - obs.keypoints[..., :2]).norm(dim=-1)
+        seen = obs.keypoints[..., 2] > 0
+        out = np.full(B, np.nan)
+        for b in range(B):
+            if seen[b].any():
+                out[b] = float(err[b][seen[b]].median())
+        return out
+
+
+def draw_overlay(session, model, params: BodyParams, frame_id: int, cameras: Cameras, path: Path) -> None:
+    """First camera's colour image with the fitted BODY_25 skeleton (green) over the detections (red)."""
+    image = session.read_color(0, frame_id)
+    if image is None:
+        return
+    with torch.no_grad():
+        kps = model(params).keypoints[0, :NUM_BODY]
+        pix, z = project(kps, cameras.select([0]))
+    canvas = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+    pts = pix[0].numpy()
+    for a, b in BODY_25_EDGES:
+        if z[0, a] > 0 and z[0, b] > 0:
+            cv2.line(canvas, tuple(int(v) for v in pts[a]), tuple(int(v) for v in pts[b]), (0, 220, 0), 2)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), canvas)
+
+
+def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
+    """The `body` stage: writes OUT/body_params.npz, body_vertices.npy, body_faces.npy, keypoints3d.npy."""
+    bcfg = cfg.body
+    torch.manual_seed(bcfg.seed)
+    out_dir = Path(out_dir)
+    stage_dir = out_dir / "body"
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
+    cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
+    keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints)
+    person = PersonPoints(session, cameras, bcfg, out_dir)
+    fitter = BodyFitter(model, cameras, bcfg)
+
+    T = session.num_frames
+    frame_ids = session.frame_ids
+    checkpoint = stage_dir / "progress.npz"
+    fitted = model.init_params(T)
+    done = np.zeros(T, bool)
+    valid = np.zeros(T, bool)
+    reproj = np.full(T, np.nan)
+    seconds = np.zeros(T)
+    if checkpoint.exists():
+        saved = np.load(checkpoint)
+        fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype)
+        done, valid, reproj, seconds = saved["done"], saved["valid"], saved["reprojection_px"], saved["seconds"]
+        log.info("body: resuming, %d of %d frames already fitted", int(done.sum()), T)
+
+    template = model.init_params(1)  # what the next batch starts from: the last fitted frame
+    batches = [np.arange(s, min(s + bcfg.batch_frames, T)) for s in range(0, T, bcfg.batch_frames)]
+    bar = tqdm(total=T, desc="body", unit="frame", disable=not progress, initial=int(done.sum()))
+    for batch in batches:
+        if done[batch].all():
+            if valid[batch].any():
+                template = fitted[int(batch[valid[batch]][-1])]
+            continue
+        start = time.perf_counter()
+        ids = frame_ids[batch]
+        kps = keypoint_source.batch(ids, bcfg.min_keypoint_confidence)
+        points, point_valid = person.batch(ids, kps)
+        obs = BodyObservations(ids, torch.from_numpy(kps), points, point_valid)
+        usable = usable_frames(obs.keypoints, obs.point_valid, bcfg).numpy()
+        if usable.any():
+            keep = np.flatnonzero(usable)
+            sub = BodyObservations(ids[keep], obs.keypoints[keep], obs.points[keep], obs.point_valid[keep])
+            init = fitter.initialise(sub, template)
+            params, _ = fitter.fit(sub, init)
+            for name, value in params.tensors().items():
+                getattr(fitted, name)[batch[keep]] = value
+            reproj[batch[keep]] = reprojection_error_px(model, params, sub, cameras)
+            valid[batch[keep]] = True
+            template = params[len(keep) - 1]
+        done[batch] = True
+        seconds[batch] = (time.perf_counter() - start) / len(batch)
+        bar.update(len(batch))
+        save_npz(checkpoint, **fitted.to_numpy_dict(), done=done, valid=valid, reprojection_px=reproj, seconds=seconds)
+    bar.close()
+    return write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, bcfg, cameras)
+
+
+PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")
+
+
+def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray, frame_ids, **extra) -> np.ndarray:
+    """PER_FRAME_FILES of SESSION_FORMAT.md into `folder`, frames not `valid` NaN; returns the
+    vertices (T, V, 3). `extra` arrays go into body_params.npz beside the parameters."""
+    T = len(valid)
+    vertices = np.full((T, model.num_vertices, 3), np.nan, np.float32)
+    keypoints = np.full((T, NUM_BODY_HANDS, 3), np.nan, np.float32)
+    with torch.no_grad():
+        for s in range(0, T, 16):
+            idx = np.arange(s, min(s + 16, T))
+            idx = idx[valid[idx]]
+            if len(idx):
+                out = model(fitted.map(lambda t: t[idx]))
+                vertices[idx] = out.vertices.cpu().numpy()
+                keypoints[idx] = out.keypoints[:, :NUM_BODY_HANDS].cpu().numpy()
+    arrays = fitted.to_numpy_dict()
+    for name in arrays:
+        arrays[name][~valid] = np.nan
+    shape_mean = arrays["shape"][valid].mean(0) if valid.any() else np.full(model.num_shape, np.nan)
+    save_npz(folder / "body_params.npz", model=np.array(model.name), **arrays, shape_mean=shape_mean.astype(np.float32),
+             valid=valid, frame_ids=frame_ids, **extra)
+    save_npy(folder / "body_vertices.npy", vertices)
+    save_npy(folder / "body_faces.npy", model.faces.cpu().numpy().astype(np.int64))
+    save_npy(folder / "keypoints3d.npy", keypoints)
+    return vertices
+
+
+def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras) -> dict:
+    """The SESSION_FORMAT.md files, kept in OUT/body/ and shown at OUT/ until the `global` stage
+    replaces them; frames without a fit are NaN."""
+    T = session.num_frames
+    stage_dir = out_dir / "body"
+    save_body_results(stage_dir, model, fitted, valid, session.frame_ids, reprojection_px=reproj.astype(np.float32))
+    for name in PER_FRAME_FILES:
+        publish(stage_dir / name, out_dir / name)
+    for i in range(0, T, max(1, bcfg.overlay_every)):
+        if valid[i]:
+            draw_overlay(session, model, fitted.map(lambda t: t[i:i + 1]), int(session.frame_ids[i]), cameras,
+                         stage_dir / "overlays" / f"{int(session.frame_ids[i]):06d}.jpg")
+    return {
+        "frames_fitted": int(valid.sum()),
+        "frames_unusable": int((~valid).sum()),
+        "reprojection_px_median": float(np.nanmedian(reproj)) if valid.any() else None,
+        "seconds_per_frame": float(seconds.mean()),
+    }

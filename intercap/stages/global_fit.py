@@ -1,0 +1,605 @@
+"""The `global` stage: body and object over all frames jointly, with contact (InterCap's last step).
+
+The per-frame results (OUT/body/, OUT/object/) are refined together, the body's
+shape fixed to the per-frame fits' sequence mean, by one L-BFGS (strong Wolfe)
+problem per window of frames:
+  * E_B, the body stage's own terms (keypoints, depth against visible vertices,
+    pose / hand priors, self-penetration) with its weights;
+  * E_O, the observed object points (each view's object pixels with depth)
+    against the posed object's surface, through a signed-distance grid of the
+    mesh; a weak anchor to the tracked pose where the tracker trusted it;
+  * E_P, body vertices inside the object; E_C, the touching hands' nearest
+    palm patch onto the object's surface, and E_C', a grasping palm onto the
+    object's graspable vertices (`object.contact_vertices`), both only in the
+    frames the `contact` stage marks; E_G, body and object above the ground;
+  * E_A, the acceleration of the object's points; the acceleration of the
+    body's vertices; the learned motion priors of body and hands (E_S, E_L,
+    E_R; `intercap.motion_prior`) when weighted (off by default: they helped
+    one benchmark session and hurt the other, BENCHMARKS.md).
+Long sequences run in overlapping windows (memory stays bounded): each window
+after the first holds its first `window_history` frames fixed at the previous
+window's result, so velocity and acceleration run on across the seam, and a
+window commits only the frames that had `window_overlap - window_history`
+frames of future in it. Frames that the per-frame stages could not fit stay
+free variables (the motion terms carry them), but are written NaN, as before:
+marked, never invented.
+
+Writes OUT/global/ (body_params.npz, body_vertices.npy, body_faces.npy,
+keypoints3d.npy, object_poses.npz, progress.npz for resume, overlays) and shows
+them at OUT/, where the per-frame stages' results were; those stay in
+OUT/body/ and OUT/object/.
+"""
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+from tqdm import tqdm
+
+from intercap.body_models import BodyParams, load_from_config
+from intercap.body_models.base import PARAM_FIELDS, BodyOutput, axis_angle_to_matrix, matrix_to_axis_angle
+from intercap.energies import losses
+from intercap.energies.motion_prior import MODEL_FPS
+from intercap.energies.optim import minimise
+from intercap.geometry.cameras import Cameras
+from intercap.io.files import per_frame_result, publish, save_npz
+from intercap.stages.body import (
+    PHASES,
+    BodyFitter,
+    BodyObservations,
+    KeypointSource,
+    PersonPoints,
+    draw_overlay,
+    save_body_results,
+)
+
+log = logging.getLogger(__name__)
+
+BODY_TERMS = PHASES[-1].terms  # E_B: the per-frame stage's final phase
+HANDS = ("left_hand", "right_hand")
+OUTPUT_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy", "object_poses.npz")
+
+
+class GlobalError(ValueError):
+    pass
+
+
+# ---------------------------------------------------------------------------
+# Inputs
+# ---------------------------------------------------------------------------
+
+def fill_gaps(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(T, ...) values with invalid frames replaced by linear interpolation in time between the
+    nearest valid frames (held at the ends). Axis-angle and translations vary slowly enough over a
+    short gap for this to be only a starting point; the optimisation does the rest."""
+    values = np.array(values, dtype=np.float64)
+    if valid.all() or not valid.any():
+        return values
+    t = np.arange(len(values))
+    flat = values.reshape(len(values), -1)
+    for k in range(flat.shape[1]):
+        flat[~valid, k] = np.interp(t[~valid], t[valid], flat[valid, k])
+    return flat.reshape(values.shape)
+
+
+@dataclass
+class PerFrameResults:
+    """What the per-frame stages left, gaps filled; T frames."""
+
+    body: BodyParams  # (T, ...), shape already the sequence mean
+    body_valid: np.ndarray  # (T,) bool
+    R: np.ndarray  # (T, 3, 3) object -> world
+    t: np.ndarray  # (T, 3)
+    object_valid: np.ndarray  # (T,) bool
+    object_confidence: np.ndarray  # (T,) in [0, 1], 0 where not trusted
+    contact: np.ndarray  # (T,) bool
+    hand_distance: np.ndarray | None  # (T, 2) metres from the left, right hand to the object (None: not measured yet)
+    grasping: np.ndarray | None = None  # (T, 2) bool: the hand holds the object (a contact frame, hand within reach)
+
+
+def load_per_frame(session, out_dir: Path, model) -> PerFrameResults:
+    """Read OUT/body/, OUT/object/ and the contact stage's labels; clear errors when missing."""
+    body_file = per_frame_result(out_dir, "body", "body_params.npz")
+    object_file = per_frame_result(out_dir, "object", "object_poses.npz")
+    for path, stage in ((body_file, "body"), (object_file, "object")):
+        if not path.exists():
+            raise GlobalError(f"{path} is missing: run the `{stage}` stage first "
+                              f"(intercap run SESSION --out {out_dir} --stages {stage})")
+    saved = np.load(body_file)
+    if str(saved["model"]) != model.name:
+        raise GlobalError(f"{body_file} holds a {saved['model']} fit but the session asks for {model.name}")
+    body_valid = saved["valid"].astype(bool)
+    if not body_valid.any():
+        raise GlobalError(f"{body_file}: no frame has a body fit; nothing to refine")
+    arrays = {k: fill_gaps(saved[k], body_valid).astype(np.float32) for k in PARAM_FIELDS}
+    arrays["shape"][:] = saved["shape_mean"]
+    body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype)
+
+    poses = np.load(object_file)
+    object_valid = poses["valid"].astype(bool)
+    if not object_valid.any():
+        raise GlobalError(f"{object_file}: the object was tracked in no frame; nothing to refine")
+    R, t = unwrap_symmetry(poses["R"], poses["t"], object_valid, session.object.load_mesh())
+    rotvec = fill_gaps(_rotvecs(R, object_valid), object_valid)
+    R = axis_angle_to_matrix(torch.from_numpy(rotvec)).numpy()
+    t = fill_gaps(t, object_valid)
+    confidence = np.where(object_valid, np.nan_to_num(poses["confidence"]), 0.0)
+
+    contact, hand_distance = load_contact_labels(out_dir, session.num_frames)
+    return PerFrameResults(body, body_valid, R, t, object_valid, confidence, contact, hand_distance)
+
+
+def hand_object_distance(model, per_frame: PerFrameResults, shape: "ObjectShape") -> np.ndarray:
+    """(T, 2) metres from each hand's contact region to the object's surface in the per-frame results."""
+    ids = [torch.as_tensor(model.contact_regions[h]) for h in HANDS]
+    distance = np.zeros((len(per_frame.contact), 2))
+    R = torch.as_tensor(per_frame.R, dtype=torch.float32)
+    t = torch.as_tensor(per_frame.t, dtype=torch.float32)
+    with torch.no_grad():
+        for s in range(0, len(distance), 32):
+            sl = slice(s, s + 32)
+            vertices = model.sparse_forward(per_frame.body[sl], torch.cat(ids)).vertices
+            sd = shape.signed_distance((vertices - t[sl, None]) @ R[sl])
+            distance[sl, 0] = sd[:, :len(ids[0])].min(1).values.numpy()
+            distance[sl, 1] = sd[:, len(ids[0]):].min(1).values.numpy()
+    return distance
+
+
+def unwrap_symmetry(R: np.ndarray, t: np.ndarray, valid: np.ndarray, mesh: trimesh.Trimesh):
+    """Per-frame poses of a symmetric object, each replaced by its look-alike (R S, moved so the
+    surface looks the same) nearest in rotation to the previous frame's: the tracker may pick any of
+    them frame by frame, and E_A / the anchor must not see a box turn 180 degrees between frames."""
+    from intercap.geometry.symmetry import axis_angle_matrix, detect_symmetry, surface_moments
+
+    symmetry = detect_symmetry(mesh)
+    if not symmetry.is_symmetric:
+        return R, t
+    centre, _ = surface_moments(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces))
+    R, t = np.array(R, np.float64), np.array(t, np.float64)
+    previous = None
+    for i in np.flatnonzero(valid):
+        if previous is not None:
+            S = symmetry.rotations[np.argmax(np.einsum("gij,ij->g", R[i] @ symmetry.rotations, previous))]
+            if symmetry.continuous_axes:  # then the angle about the axis nearest to previous
+                a = np.asarray(symmetry.continuous_axes[0], np.float64)
+                Q = (R[i] @ S).T @ previous
+                skew = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+                angle = np.arctan2(np.trace(skew.T @ Q), np.trace(Q) - a @ Q @ a)
+                S = S @ axis_angle_matrix(a, angle)
+            t[i] = t[i] + R[i] @ (centre - S @ centre)
+            R[i] = R[i] @ S
+        previous = R[i]
+    return R, t
+
+
+def _rotvecs(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(T, 3) axis-angle of the valid rotations, made continuous in time (no 2 pi jumps), NaN elsewhere."""
+    out = np.full((len(R), 3), np.nan)
+    out[valid] = matrix_to_axis_angle(torch.from_numpy(R[valid]).double()).numpy()
+    previous = None
+    for i in np.flatnonzero(valid):  # choose the equivalent axis-angle nearest the previous one
+        if previous is not None:
+            angle = np.linalg.norm(out[i])
+            if angle > 1e-6:
+                alt = out[i] * (1 - 2 * np.pi / angle)
+                if np.linalg.norm(alt - previous) < np.linalg.norm(out[i] - previous):
+                    out[i] = alt
+        previous = out[i]
+    return out
+
+
+def load_contact_labels(out_dir: Path, T: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Contact per frame (T,) and each hand's per-frame distance to the object (T, 2) metres, from the
+    `contact` stage; the distances are None where only OUT/contact.npy exists (measured here then)."""
+    from intercap.stages.contact import load_contact
+
+    if (Path(out_dir) / "contact" / "contact.npz").exists():
+        data = load_contact(out_dir)
+        names = data["region_names"]
+        if all(h in names for h in HANDS) and "region_distance_m" in data:
+            distance = np.stack([data["region_distance_m"][:, names.index(h)] for h in HANDS], 1)
+            return data["contact"].astype(bool), np.nan_to_num(distance, nan=np.inf)
+        return data["contact"].astype(bool), None
+    labels = Path(out_dir) / "contact.npy"
+    if labels.exists():
+        return np.load(labels).astype(bool), None
+    log.warning("global: no contact labels (run the `contact` stage); contact terms are off")
+    return np.zeros(T, bool), np.full((T, 2), np.inf)
+
+
+# ---------------------------------------------------------------------------
+# The object's geometry
+# ---------------------------------------------------------------------------
+
+class ObjectShape:
+    """The rigid object in its own coordinates: a signed-distance grid (trilinear, differentiable in
+    the query points), surface samples for E_A / E_G, and its graspable points for E_C'."""
+
+    def __init__(self, mesh: trimesh.Trimesh, resolution: int, grasp_ids: np.ndarray | None, samples: int = 256,
+                 seed: int = 0):
+        import open3d as o3d
+
+        vertices = np.asarray(mesh.vertices, dtype=np.float32)
+        lo, hi = vertices.min(0), vertices.max(0)
+        margin = 0.2 * float((hi - lo).max()) + 0.05
+        lo, hi = lo - margin, hi + margin
+        cell = float((hi - lo).max()) / resolution
+        counts = np.ceil((hi - lo) / cell).astype(int) + 1
+        axes = [lo[k] + cell * np.arange(counts[k]) for k in range(3)]
+        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).astype(np.float32)  # (X, Y, Z, 3)
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
+        if mesh.is_watertight:
+            sdf = scene.compute_signed_distance(grid.reshape(-1, 3)).numpy()
+        else:  # no inside to speak of: distances only, so nothing is pushed out of an open shell
+            sdf = scene.compute_distance(grid.reshape(-1, 3)).numpy()
+            log.warning("global: the object mesh is not watertight; interpenetration is not measured")
+        # grid_sample wants (N, C, D, H, W) with x indexing W: store as (Z, Y, X).
+        self.sdf = torch.from_numpy(sdf.reshape(grid.shape[:3]).transpose(2, 1, 0).copy())[None, None]
+        self.lo, self.hi = torch.from_numpy(lo), torch.from_numpy(lo + cell * (counts - 1))
+        points, _ = trimesh.sample.sample_surface_even(mesh, samples, seed=seed)
+        self.samples = torch.as_tensor(np.asarray(points), dtype=torch.float32)  # (M, 3)
+        ids = np.arange(len(vertices)) if grasp_ids is None or len(grasp_ids) == 0 else np.asarray(grasp_ids)
+        self.grasp_points = torch.from_numpy(vertices[ids])  # (G, 3)
+        self.centroid = torch.from_numpy(vertices.mean(0))
+
+    def signed_distance(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) points in object coordinates -> (...) metres, positive outside. Beyond the grid:
+        the border value plus the distance to the grid box (an overestimate that keeps its sign)."""
+        lo, hi = self.lo.to(points), self.hi.to(points)
+        inside = torch.minimum(torch.maximum(points, lo), hi)
+        outside = (points - inside).norm(dim=-1)
+        normalised = (inside - lo) / (hi - lo) * 2 - 1
+        flat = normalised.reshape(1, -1, 1, 1, 3)
+        value = torch.nn.functional.grid_sample(self.sdf.to(points), flat, mode="bilinear", align_corners=True)
+        return value.reshape(points.shape[:-1]) + outside
+
+
+# ---------------------------------------------------------------------------
+# Windows
+# ---------------------------------------------------------------------------
+
+def windows(T: int, size: int, overlap: int, history: int) -> list[tuple[int, int, int, int]]:
+    """(start, end, fixed, commit_end) per window: frames [start, end) are optimised together, the
+    first `fixed` of them held at the previous window's result, and [start + fixed, commit_end)
+    are final after this window."""
+    if size < 4 or not 0 <= history <= overlap < size:
+        raise GlobalError(f"bad window settings: size {size}, overlap {overlap}, history {history} "
+                          "(need 0 <= history <= overlap < size, size >= 4)")
+    out, start = [], 0
+    while True:
+        end = min(start + size, T)
+        last = end == T
+        out.append((start, end, history if start > 0 else 0, end if last else end - overlap + history))
+        if last:
+            return out
+        start = end - overlap
+
+
+# ---------------------------------------------------------------------------
+# The fit
+# ---------------------------------------------------------------------------
+
+class GlobalFitter:
+    """One window's joint problem; holds the model, the body stage's fitter and the object shape."""
+
+    def __init__(self, model, cameras: Cameras, bcfg, gcfg, shape: ObjectShape, ground, fps: float):
+        self.model, self.bcfg, self.gcfg = model, bcfg, gcfg
+        self.body = BodyFitter(model, cameras, bcfg)
+        self.shape = shape
+        self.fps = float(fps)
+        self.ground = None if ground is None else (torch.as_tensor(ground.point, dtype=torch.float32),
+                                                   torch.as_tensor(ground.normal, dtype=torch.float32))
+        subset = self.body.subset
+        regions = [model.contact_regions[h] for h in HANDS]
+        feet = [model.contact_regions[f] for f in ("left_foot", "right_foot") if f in model.contact_regions]
+        extra = [torch.as_tensor(r) for r in regions + feet]
+        self.priors = {}
+        if gcfg.w_body_motion_prior > 0 or gcfg.w_hand_motion_prior > 0:
+            from intercap.energies.motion_prior import load_motion_prior
+
+            self.priors = {k: load_motion_prior(k) for k in ("body", "hand")}
+            extra += [self.priors[k].point_ids for k in self.priors]
+        # the vertices the window needs: the fitting subsample first (E_B), then the rest, once each
+        rest = torch.unique(torch.cat(extra).to(subset))
+        rest = rest[~torch.isin(rest, subset)]
+        self.vertex_ids = torch.cat([subset, rest])
+        position = {int(v): i for i, v in enumerate(self.vertex_ids.tolist())}
+        self.hand_slots = [torch.tensor([position[int(v)] for v in r]) for r in regions]
+        self.prior_slots = {k: torch.tensor([position[int(v)] for v in p.point_ids.tolist()])
+                            for k, p in self.priors.items()}
+        self.free_bones = self.body.free_bones
+
+    # -- parameters -----------------------------------------------------------------------
+    def object_pose(self, R0: torch.Tensor, c0: torch.Tensor, rotation: torch.Tensor, shift: torch.Tensor):
+        """The object's pose (R, centre) from the per-frame one turned by `rotation` (axis-angle,
+        world, about the centroid) and its centroid moved by `shift`."""
+        return axis_angle_to_matrix(rotation) @ R0, c0 + shift
+
+    def to_object(self, points: torch.Tensor, R: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+        """World points (W, N, 3) -> object coordinates, with R (W, 3, 3) and the centroid's world position."""
+        return (points - centre[:, None]) @ R + self.shape.centroid.to(points)
+
+    def from_object(self, points: torch.Tensor, R: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
+        """Object coordinates (M, 3) -> world (W, M, 3)."""
+        return (points - self.shape.centroid.to(points)) @ R.transpose(1, 2) + centre[:, None]
+
+    # -- energy ---------------------------------------------------------------------------
+    def energy_terms(self, params: BodyParams, R, centre, data: "WindowData", matches) -> dict[str, torch.Tensor]:
+        """Every term, unweighted: per frame (W,) where it is per frame."""
+        g = self.gcfg
+        out = self.model.sparse_forward(params, self.vertex_ids)
+        vertices = out.vertices  # (W, U, 3)
+        subset_out = BodyOutput(vertices=vertices, joints=out.joints, keypoints=out.keypoints)
+        terms = {f"body_{k}": v for k, v in self.body.energy_terms(
+            params, data.obs, BODY_TERMS, matches, self.bcfg.keypoint_rho, out=subset_out).items()}
+
+        object_world = self.from_object(self.shape.samples, R, centre)  # (W, M, 3)
+        if data.object_points is not None:
+            sd = self.shape.signed_distance(self.to_object(data.object_points, R, centre))
+            terms["object"] = losses.object_point_to_surface(sd, data.object_point_valid, g.object_depth_scale_m)
+        terms["object_anchor"] = losses.pose_anchor(object_world, data.object_reference, data.object_confidence)
+        body_in_object = self.shape.signed_distance(self.to_object(vertices, R, centre))  # (W, U)
+        terms["interpenetration"] = losses.body_object_interpenetration(body_in_object)
+        contact = torch.zeros_like(terms["interpenetration"])
+        grasp = torch.zeros_like(contact)
+        grasp_world = self.from_object(self.shape.grasp_points, R, centre)
+        for h, slots in enumerate(self.hand_slots):
+            touching = data.grasping[:, h]
+            active = torch.nonzero(touching > 0)[:, 0]  # E_C' measures all pairs: only where the hand grasps
+            if len(active):
+                contact = contact + losses.contact_chamfer(body_in_object[:, slots], touching, g.contact_vertices)
+                grasp = grasp.index_add(0, active, losses.hand_contact(
+                    vertices[active][:, slots], grasp_world[active], touching[active], g.contact_vertices))
+        terms["contact"], terms["hand_contact"] = contact, grasp
+        if self.ground is not None:
+            point, normal = (x.to(vertices) for x in self.ground)
+            terms["ground"] = (losses.ground_penetration(vertices, point, normal)
+                               + losses.ground_penetration(object_world, point, normal))
+        if len(vertices) >= 3:
+            terms["object_acceleration"] = losses.vertex_acceleration(object_world, self.fps)
+            terms["body_acceleration"] = losses.vertex_acceleration(vertices, self.fps)
+        if self.priors and len(vertices) >= 3 * max(1, round(self.fps / MODEL_FPS)):  # enough frames for its phases
+            from intercap.energies.motion_prior import body_motion_smoothness, hand_motion_smoothness
+
+            up = None if self.ground is None else self.ground[1].to(vertices)
+            terms["body_motion_prior"] = body_motion_smoothness(vertices[:, self.prior_slots["body"]], self.fps, up)
+            hand_points = vertices[:, self.prior_slots["hand"]]
+            terms["hand_motion_prior"] = (hand_motion_smoothness(hand_points, self.fps, "L", up)
+                                          + hand_motion_smoothness(hand_points, self.fps, "R", up))
+        return terms
+
+    def weight(self, term: str) -> float:
+        if term.startswith("body_") and hasattr(self.bcfg, "w_" + term[5:]):
+            return getattr(self.bcfg, "w_" + term[5:])
+        return getattr(self.gcfg, "w_" + term)
+
+    def fit_window(self, init: BodyParams, R0: torch.Tensor, c0: torch.Tensor, fixed: int, data: "WindowData",
+                   monitor=None) -> tuple[BodyParams, torch.Tensor, torch.Tensor, dict]:
+        """Optimise frames [fixed, W) of the window; the first `fixed` stay as given."""
+        g = self.gcfg
+        W = init.batch_size
+        free = self.free_bones
+        names = ("global_orient", "transl", "left_hand_pose", "right_hand_pose")
+        leaves = {n: getattr(init, n)[fixed:].detach().clone() for n in names}
+        leaves["body_pose"] = init.body_pose[fixed:, free].detach().clone()
+        leaves["rotation"] = torch.zeros(W - fixed, 3, dtype=R0.dtype)
+        leaves["shift"] = torch.zeros(W - fixed, 3, dtype=R0.dtype)
+        still = torch.zeros(fixed, 3, dtype=R0.dtype)
+
+        def current():
+            values = {n: torch.cat([getattr(init, n)[:fixed].detach(), leaves[n]]) for n in names}
+            pose = init.body_pose.detach()[fixed:].index_copy(1, free, leaves["body_pose"])
+            body = BodyParams(shape=init.shape.detach(), expression=init.expression.detach(),
+                              body_pose=torch.cat([init.body_pose[:fixed].detach(), pose]), **values)
+            R, centre = self.object_pose(R0, c0, torch.cat([still, leaves["rotation"]]),
+                                         torch.cat([still, leaves["shift"]]))
+            return body, R, centre
+
+        state = {"matches": self.body.correspondences(init, data.obs)}
+
+        def energy():
+            body, R, centre = current()
+            terms = self.energy_terms(body, R, centre, data, state["matches"])
+            return sum(self.weight(k) * v.sum() for k, v in terms.items())
+
+        def refresh(step, value):
+            if step % max(1, g.correspondence_every) == 0:
+                state["matches"] = self.body.correspondences(current()[0].detach(), data.obs)
+            if monitor is not None:
+                monitor(step, value)
+
+        with torch.no_grad():
+            before = {k: float(v.sum()) for k, v in self.energy_terms(*current(), data, state["matches"]).items()}
+        result = minimise(list(leaves.values()), energy, max_steps=g.steps, inner_iterations=g.inner_iterations,
+                          ftol=g.ftol, monitor=refresh)
+        with torch.no_grad():
+            body, R, centre = (x.detach() for x in current())
+            after = {k: float(v.sum()) for k, v in self.energy_terms(body, R, centre, data, state["matches"]).items()}
+        stats = {"before": before, "after": after, "steps": result.steps, "evaluations": result.evaluations,
+                 "stopped": result.stopped}
+        return body, R, centre, stats
+
+
+@dataclass
+class WindowData:
+    """The observations of one window's W frames."""
+
+    obs: BodyObservations
+    object_points: torch.Tensor | None  # (W, P, 3) world
+    object_point_valid: torch.Tensor | None  # (W, P)
+    object_reference: torch.Tensor  # (W, M, 3) the object's samples where the tracker put them
+    object_confidence: torch.Tensor  # (W,)
+    grasping: torch.Tensor  # (W, 2) float
+
+
+class Observations:
+    """Loads what a window needs: keypoints and person points as the body stage does, object points
+    from the object masks (given or derived around the tracked pose) with depth."""
+
+    def __init__(self, session, cfg, out_dir: Path, cameras: Cameras):
+        from intercap.stages.object import ObjectTracker
+
+        self.session, self.cfg = session, cfg
+        self.keypoints = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints)
+        self.person = PersonPoints(session, cameras, cfg.body, out_dir)
+        self.tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
+
+    def object_points(self, frame_id: int, R: np.ndarray, t: np.ndarray, trusted: bool, seed: int) -> np.ndarray:
+        """(P, 3) world points of the object's pixels, a seeded subset; none where the tracker lost it."""
+        P = self.cfg.global_.object_points_per_view * self.session.num_cameras
+        if not trusted:
+            return np.zeros((0, 3))
+        points = self.tracker.object_points(self.tracker.observe(frame_id, (R, t)))
+        if len(points) > P:
+            points = points[np.random.default_rng([seed, frame_id]).choice(len(points), P, replace=False)]
+        return points
+
+    def window(self, frames: np.ndarray, per_frame: PerFrameResults, shape: ObjectShape) -> WindowData:
+        ids = self.session.frame_ids[frames]
+        kps = self.keypoints.batch(ids, self.cfg.body.min_keypoint_confidence)
+        points, point_valid = self.person.batch(ids, kps)
+        obs = BodyObservations(ids, torch.from_numpy(kps), points, point_valid)
+        P = self.cfg.global_.object_points_per_view * self.session.num_cameras
+        cloud = np.zeros((len(frames), P, 3), np.float32)
+        cloud_valid = np.zeros((len(frames), P), bool)
+        for b, i in enumerate(frames):
+            pts = self.object_points(int(ids[b]), per_frame.R[i], per_frame.t[i], bool(per_frame.object_valid[i]),
+                                     self.cfg.global_.seed)
+            cloud[b, :len(pts)], cloud_valid[b, :len(pts)] = pts, True
+        R = torch.as_tensor(per_frame.R[frames], dtype=torch.float32)
+        t = torch.as_tensor(per_frame.t[frames], dtype=torch.float32)
+        reference = (shape.samples @ R.transpose(1, 2)) + t[:, None]
+        return WindowData(obs, torch.from_numpy(cloud), torch.from_numpy(cloud_valid), reference,
+                          torch.as_tensor(per_frame.object_confidence[frames], dtype=torch.float32),
+                          torch.as_tensor(per_frame.grasping[frames], dtype=torch.float32))
+
+
+# ---------------------------------------------------------------------------
+# The stage
+# ---------------------------------------------------------------------------
+
+def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
+    """The `global` stage; see the module docstring."""
+    from intercap.stages.prepare import load_ground
+
+    if session.object is None:
+        log.info("global: the session has no object; the per-frame body results stand")
+        return {"skipped": "no object in session"}
+    g = cfg.global_
+    torch.manual_seed(g.seed)
+    out_dir = Path(out_dir)
+    stage_dir = out_dir / "global"
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
+    cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
+    per_frame = load_per_frame(session, out_dir, model)
+    ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
+    if ground is None:
+        log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
+    mesh = session.object.load_mesh()
+    shape = ObjectShape(mesh, g.sdf_resolution, session.object.contact_vertices, seed=g.seed)
+    if per_frame.hand_distance is None:
+        per_frame.hand_distance = hand_object_distance(model, per_frame, shape)
+    per_frame.grasping = per_frame.contact[:, None] & (per_frame.hand_distance < g.hand_reach_m)
+    fitter = GlobalFitter(model, cameras, cfg.body, g, shape, ground, session.fps)
+    observations = Observations(session, cfg, out_dir, cameras)
+
+    T = session.num_frames
+    plan = windows(T, g.window_frames, g.window_overlap, g.window_history)
+    fitted = per_frame.body.clone()
+    R_all = torch.as_tensor(per_frame.R, dtype=torch.float32)
+    centre_all = torch.as_tensor(per_frame.t, dtype=torch.float32) + R_all @ shape.centroid
+    checkpoint = stage_dir / "progress.npz"
+    next_window, seconds, history = 0, 0.0, []
+    if checkpoint.exists():
+        saved = np.load(checkpoint)
+        fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype)
+        R_all, centre_all = torch.from_numpy(saved["R"]), torch.from_numpy(saved["centre"])
+        next_window, seconds = int(saved["next_window"]), float(saved["seconds"])
+        log.info("global: resuming at window %d of %d", next_window + 1, len(plan))
+
+    bar = tqdm(total=T, desc="global", unit="frame", disable=not progress,
+               initial=plan[next_window - 1][3] if next_window else 0)
+    for k in range(next_window, len(plan)):
+        start, end, fixed, commit = plan[k]
+        tick = time.perf_counter()
+        frames = np.arange(start, end)
+        data = observations.window(frames, per_frame, shape)
+        body, R, centre, stats = fitter.fit_window(fitted[start:end], R_all[start:end], centre_all[start:end],
+                                                   fixed, data)
+        keep = slice(fixed, commit - start)
+        for name, value in body.tensors().items():
+            getattr(fitted, name)[start + fixed:commit] = value[keep]
+        R_all[start + fixed:commit], centre_all[start + fixed:commit] = R[keep], centre[keep]
+        seconds += time.perf_counter() - tick
+        history.append(stats)
+        log.debug("global window %d: %s", k, stats)
+        save_npz(checkpoint, **fitted.to_numpy_dict(), R=R_all.numpy(), centre=centre_all.numpy(),
+                 next_window=k + 1, seconds=seconds)
+        bar.update(commit - (start + fixed))
+    bar.close()
+    return write_outputs(session, model, fitted, R_all, centre_all, shape, per_frame, seconds, history, out_dir,
+                         observations, cameras, cfg, fitter.weight)
+
+
+def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectShape, per_frame: PerFrameResults,
+                  seconds: float, history: list, out_dir: Path, observations: Observations, cameras, cfg,
+                  weight) -> dict:
+    """OUT/global/ files, shown at OUT/; frames the per-frame stages could not fit are NaN."""
+    T = session.num_frames
+    stage_dir = out_dir / "global"
+    valid = per_frame.body_valid
+    vertices = save_body_results(stage_dir, model, fitted, valid, session.frame_ids)
+    ok = per_frame.object_valid
+    R_out = np.where(ok[:, None, None], R.numpy(), np.nan).astype(np.float32)
+    t_world = centre - (R @ shape.centroid)
+    t_out = np.where(ok[:, None], t_world.numpy(), np.nan).astype(np.float32)
+    save_npz(stage_dir / "object_poses.npz", R=R_out, t=t_out, valid=ok, confidence=per_frame.object_confidence,
+             frame_ids=session.frame_ids)
+    for name in OUTPUT_FILES:
+        publish(stage_dir / name, out_dir / name)
+
+    for i in range(0, T, max(1, cfg.body.overlay_every)):
+        fid = int(session.frame_ids[i])
+        if valid[i]:
+            draw_overlay(session, model, fitted[i], fid, cameras, stage_dir / "overlays" / f"body_{fid:06d}.jpg")
+        if ok[i]:
+            from intercap.stages.object import draw_overlay as draw_object
+
+            draw_object(session, observations.tracker, fid, R_out[i], t_out[i],
+                        stage_dir / "overlays" / f"object_{fid:06d}.jpg")
+    figures = quality_figures(vertices, R_out, t_out, shape, per_frame, session.fps)
+    totals = {}  # each term's weighted energy summed over windows, before and after the fit
+    for stats in history:
+        for when in ("before", "after"):
+            for term, value in stats[when].items():
+                totals.setdefault(f"energy_{when}", {}).setdefault(term, 0.0)
+                totals[f"energy_{when}"][term] += weight(term) * value
+    totals = {key: {term: float(f"{value:.4g}") for term, value in terms.items()} for key, terms in totals.items()}
+    return {**figures, **totals, "windows": len(history), "seconds_per_frame_fit": seconds / max(T, 1),
+            "evaluations": sum(h["evaluations"] for h in history), "steps": sum(h["steps"] for h in history)}
+
+
+def quality_figures(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, shape: ObjectShape,
+                    per_frame: PerFrameResults, fps: float) -> dict:
+    """The stage's own checks (no ground truth): penetration and hand gap on contact frames, jitter."""
+    both = per_frame.body_valid & per_frame.object_valid & per_frame.contact
+    figures = {"contact_frames": int(per_frame.contact.sum())}
+    if both.any():
+        idx = np.flatnonzero(both)
+        local = torch.from_numpy(np.einsum("tvj,tjk->tvk", vertices[idx] - t[idx, None], R[idx]).astype(np.float32))
+        sd = shape.signed_distance(local).numpy()  # (n, V)
+        depth = np.maximum(-sd, 0).max(1)
+        figures.update(penetration_mm_mean=float(1000 * depth.mean()), penetration_mm_max=float(1000 * depth.max()))
+    fine = per_frame.body_valid[2:] & per_frame.body_valid[1:-1] & per_frame.body_valid[:-2]
+    if fine.any():
+        acc = np.linalg.norm(vertices[2:] - 2 * vertices[1:-1] + vertices[:-2], axis=-1) * fps**2
+        figures["jitter_mps2"] = float(acc[fine].mean())
+    return figures

@@ -1,0 +1,645 @@
+"""Stage 3, `object`: per-frame 6-DoF object tracking by silhouette and depth rendering.
+
+Per frame, the object's pose (6D rotation + translation) minimises E_O over all
+views (`losses.object_silhouette` + `losses.object_depth`) with the
+differentiable renderer of `intercap.rendering`, starting from a constant-
+velocity prediction (Adam; the step size shrinks once E_O stalls).
+
+Masks come from the session, or are derived from depth: a background model per
+camera (the person's pixels left out, beyond-range regions known as far), the
+foreground outside the person, and of that the pixels whose 3D points lie near
+the predicted pose (render-compare-and-preserve in 3D); pixels without depth or
+barely in front of the background are unknown, not background.
+
+The first pose comes from session.yaml when given, else from registering the
+mesh to the first frame's object points (PCA and FPFH starts, ICP, the best
+one's quarter turns; the lowest E_O after a short fit wins). A fit whose
+silhouette IoU (over pixels not hidden by something in front) is low or whose
+E_O jumps above its recent level is searched again: locally (quarter turns
+about the mesh's principal axes: a chair's seat and legs look alike every 90
+deg), then by registration. Frames whose best fit still disagrees with the
+observations, or where no view sees the object, get NaN poses and confidence 0
+(marked, never invented).
+
+Writes OUT/object/object_poses.npz (R (T,3,3), t (T,3), confidence (T,), valid (T,),
+frame_ids (T,)), shown as OUT/object_poses.npz until the `global` stage
+replaces that with its own, OUT/object/progress.npz while running (resume), and
+OUT/object/overlays/*.jpg (rendered outline on the colour images) for a person
+to check.
+"""
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import torch
+import trimesh
+from tqdm import tqdm
+
+from intercap.energies.losses import (
+    matrix_to_rotation_6d,
+    object_depth,
+    object_silhouette,
+    occlusion_weight,
+    rotation_6d_to_matrix,
+)
+from intercap.geometry.cameras import Cameras, pixel_rays, project
+from intercap.geometry.rendering import MeshTopology, crop_observation, render
+from intercap.geometry.segmentation import (
+    background_depth,
+    clean_mask,
+    components,
+    fill_missing,
+    foreground_mask,
+    uncertain_mask,
+)
+from intercap.io.files import publish, save_npz
+
+log = logging.getLogger(__name__)
+reg = o3d.pipelines.registration
+o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's per-call warnings are noise here
+
+
+@dataclass
+class Observation:
+    """One frame's inputs for the object: (C, H, W) arrays per view."""
+
+    mask: np.ndarray  # float32 in [0, 1]
+    depth: np.ndarray  # float32 metres, 0 = missing
+    has_view: np.ndarray  # (C,) bool: depth present and an object mask found
+    known: np.ndarray  # float32, 1 where the mask's label is known (derived masks know nothing where depth is missing)
+
+    @property
+    def visible_views(self) -> int:
+        return int(self.has_view.sum())
+
+
+@dataclass
+class Fit:
+    R: np.ndarray  # (3, 3) object -> world
+    t: np.ndarray  # (3,)
+    energy: float
+    confidence: float  # mean silhouette IoU over views that see the object (pixels hidden by an occluder left out)
+
+
+def predict_pose(history: list[tuple[np.ndarray, np.ndarray] | None]):
+    """Constant-velocity prediction from the last two trusted poses (or the last one)."""
+    known = [h for h in history[-2:] if h is not None]
+    if not known:
+        return None
+    if len(known) == 1 or history[-1] is None or history[-2] is None:
+        return known[-1]
+    (R1, t1), (R2, t2) = history[-2], history[-1]
+    return R2 @ R1.T @ R2, t2 + (t2 - t1)
+
+
+def same_pose(a, b, distance_m: float, angle_deg: float = 10.0) -> bool:
+    """Poses (R, t) within `distance_m` (translation) and `angle_deg` (rotation) of each other."""
+    cos = (np.trace(np.asarray(a[0]).T @ np.asarray(b[0])) - 1) / 2
+    return bool(np.linalg.norm(np.asarray(a[1]) - np.asarray(b[1])) < distance_m and cos > np.cos(np.radians(angle_deg)))
+
+
+def distinct(poses: list, distance_m: float, taken: list = ()) -> list:
+    """`poses` (R, t) in order, without those `same_pose` as an earlier one or one in `taken`."""
+    kept: list = []
+    for pose in poses:
+        if not any(same_pose(pose, k, distance_m) for k in [*taken, *kept]):
+            kept.append(pose)
+    return kept
+
+
+def axis_rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Rotation (3, 3) by `angle_deg` about a unit `axis` (Rodrigues)."""
+    a = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    th = np.radians(angle_deg)
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+
+
+def hard_silhouettes(vertices_world: np.ndarray, faces: np.ndarray, cameras: Cameras, sizes) -> list[np.ndarray]:
+    """Binary silhouettes (H, W) per view by filling projected triangles (no gradient; for mask choice)."""
+    pix, depth = project(torch.as_tensor(vertices_world, dtype=cameras.K.dtype), cameras)
+    pix, depth = pix.numpy(), depth.numpy()
+    out = []
+    for c, (H, W) in enumerate(sizes):
+        img = np.zeros((H, W), np.uint8)
+        front = (depth[c][faces] > 0.05).all(1)
+        tris = np.round(pix[c][faces[front]] * 4).astype(np.int32)  # 2 fractional bits
+        inside = np.abs(tris).max(axis=(1, 2)) < 4 * 8 * max(H, W)
+        if inside.any():
+            cv2.fillPoly(img, list(tris[inside]), 1, lineType=cv2.LINE_8, shift=2)
+        out.append(img.astype(bool))
+    return out
+
+
+def crop_windows(images: np.ndarray, crops: torch.Tensor, size, modes: tuple[str, ...]) -> list[torch.Tensor]:
+    """`crop_observation` of images (K, C, H, W), image k with modes[k], on crops (C, 4) -> K x (C, h, w).
+
+    Same values as cropping the full images, but only a window around each crop is
+    copied and integrated (the integral image of 4 whole 640x576 views per call was
+    a third of a frame's time); pixels outside the image still read 0."""
+    K, C, H, W = images.shape
+    box = crops.double().numpy()
+    lo = np.clip(np.floor(box[:, :2]) - 2, 0, [W, H]).astype(int)  # (C, 2) window start (x, y)
+    hi = np.clip(np.ceil(box[:, 2:]) + 3, 0, [W, H]).astype(int)
+    hi = np.maximum(hi, lo)
+    ws, hs = max(1, int((hi - lo)[:, 0].max())), max(1, int((hi - lo)[:, 1].max()))
+    window = np.zeros((K, C, hs, ws), np.float32)
+    for c in range(C):
+        (x0, y0), (x1, y1) = lo[c], hi[c]
+        window[:, c, : y1 - y0, : x1 - x0] = images[:, c, y0:y1, x0:x1]
+    shift = torch.as_tensor(np.concatenate([lo, lo], 1), dtype=crops.dtype)
+    # A window cut short by the image border ends where the image does; zeros padded
+    # beyond a window that was not cut are never reached by its crop's footprint.
+    local = crops - shift
+    window = torch.from_numpy(window)
+    return [crop_observation(window[k], local, size, mode) for k, mode in enumerate(modes)]
+
+
+class ObjectTracker:
+    """Tracks one rigid mesh through a session; see the module docstring."""
+
+    def __init__(self, session, cfg, mesh, device: str = "cpu"):
+        self.session, self.cfg, self.device = session, cfg, torch.device(device)
+        self.cameras = Cameras.from_infos(session.cameras, device=device, dtype=torch.float32)
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        self.centroid = vertices.mean(0)
+        self.faces = np.asarray(mesh.faces, dtype=np.int64)
+        self.vertices_c = torch.as_tensor(vertices - self.centroid, dtype=torch.float32, device=device)  # centred
+        self.topology = MeshTopology.from_faces(torch.as_tensor(self.faces, device=device))
+        self.extent = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
+        self.radius = float(np.linalg.norm(vertices - self.centroid, axis=1).max())  # bounding sphere about the centroid
+        samples, face_ids = trimesh.sample.sample_surface(mesh, 4000, seed=cfg.seed)
+        self.model_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(samples) - self.centroid))
+        self.model_cloud.normals = o3d.utility.Vector3dVector(np.asarray(mesh.face_normals)[face_ids])
+        _, _, axes = np.linalg.svd(np.asarray(samples) - self.centroid, full_matrices=False)
+        self.turns = [axis_rotation(a, angle) for a in axes for angle in (90, 180, 270)]  # (3, 3) in object coords
+        self.sizes = [(c.height, c.width) for c in session.cameras]
+        self.use_masks = cfg.use_session_masks and all(session.has_kind("mask_object"))
+        self.backgrounds = None
+        self._rays: dict[int, torch.Tensor] = {}
+
+    # -- observations ---------------------------------------------------------------
+    def _background(self) -> list[np.ndarray]:
+        """Depth background per camera over `background_frames` frames, the person's pixels left out."""
+        if self.backgrounds is None:
+            from intercap.stages.prepare import spread_frames
+
+            frames = spread_frames(self.session.frame_ids, self.cfg.background_frames)
+            self.backgrounds = []
+            for c, (H, W) in enumerate(self.sizes):
+                stack = [self.session.read_depth(c, int(f)) for f in frames]
+                stack = np.stack([d if d is not None else np.zeros((H, W), np.float32) for d in stack])
+                people = [self.session.read_mask(c, int(f), "person") for f in frames]
+                ignore = np.stack([m if m is not None else np.zeros((H, W), bool) for m in people])
+                self.backgrounds.append(background_depth(stack, min_valid_fraction=self.cfg.background_valid_fraction,
+                                                         ignore=ignore))
+        return self.backgrounds
+
+    def observe(self, frame_id: int, predicted, reach_m: float = 0.0) -> Observation:
+        """Depth and object masks of all views (masks derived when the session has none).
+
+        `reach_m`: how far the object may have moved from `predicted` (derived masks only)."""
+        C = len(self.sizes)
+        H, W = max(s[0] for s in self.sizes), max(s[1] for s in self.sizes)
+        masks = np.zeros((C, H, W), np.float32)
+        depths = np.zeros((C, H, W), np.float32)
+        known = np.zeros((C, H, W), np.float32)
+        has = np.zeros(C, bool)
+        for c, (h, w) in enumerate(self.sizes):
+            depth = self.session.read_depth(c, frame_id)
+            if depth is None:
+                continue
+            depths[c, :h, :w] = depth
+            if self.use_masks:
+                mask = self.session.read_mask(c, frame_id, "object")
+                known[c, :h, :w] = 1.0
+            else:
+                mask, known[c, :h, :w] = self.derived_mask(c, frame_id, depth, predicted, reach_m)
+            if mask is not None and mask.sum() >= self.cfg.min_mask_px:
+                masks[c, :h, :w] = mask
+                has[c] = True
+        return Observation(mask=masks, depth=depths, has_view=has, known=known)
+
+    def derived_mask(self, c: int, frame_id: int, depth: np.ndarray, predicted, reach_m: float = 0.0):
+        """Object mask (H, W) bool and known labels (H, W) bool of view c from depth alone.
+
+        Candidates are the depth foreground outside the person. With a predicted pose,
+        the object is every candidate pixel whose 3D point lies within the object's
+        bounding sphere at that pose (grown by `reach_m` + `near_margin_m`): the 3D form of
+        render-compare-and-preserve, which keeps all fragments of a thin-barred object
+        and, unlike overlap in the image, does not cut off an object that moved more
+        than predicted. Without one, the component whose 3D extent best matches the
+        object's. Pixels only slightly in front of the background (a chair's feet on the
+        floor, a box's bottom edge) are neither object nor background: unknown."""
+        background = self._background()[c]
+        foreground = foreground_mask(depth, background)
+        known = (depth > 0) & ~(uncertain_mask(depth, background) & ~foreground)
+        person = self.session.read_mask(c, frame_id, "person")
+        gap = self._bridge_px(c)
+        # Dropouts (a dark surface loses ~40% of its depth, speckled) would let the opening
+        # in `clean_mask` erase thin parts: fill them first where foreground surrounds them.
+        foreground = fill_missing(foreground, depth, gap)
+        candidates = clean_mask(foreground & ~person if person is not None else foreground)
+        if predicted is not None:
+            R, t = predicted
+            centre = self._to_centre(R, t)
+            ys, xs = np.nonzero(candidates & (depth > 0))
+            points = self._pixel_points(c, ys, xs, depth[ys, xs])
+            near = np.linalg.norm(points - centre, axis=1) < self.radius + self.cfg.near_margin_m + reach_m
+            mask = np.zeros_like(candidates)
+            mask[ys[near], xs[near]] = True
+            mask = fill_missing(mask, depth, gap) & candidates
+            parts = components(mask, self.cfg.min_mask_px)  # drops specks the sphere cut off
+            return (np.any(parts, axis=0) if parts else np.zeros_like(mask)), known
+        best, best_score = None, np.inf
+        for cand in components(candidates, self.cfg.min_mask_px, gap):
+            ys, xs = np.nonzero(cand & (depth > 0))
+            points = self._pixel_points(c, ys, xs, depth[ys, xs])
+            if len(points) < 20:
+                continue
+            extent = np.linalg.norm(np.percentile(points, 95, 0) - np.percentile(points, 5, 0))
+            score = abs(np.log(extent / (0.8 * self.extent)))  # visible extent is a little under the full one
+            if score < best_score and extent < 1.6 * self.extent:
+                best, best_score = cand, score
+        return (best if best is not None else np.zeros_like(foreground)), known
+
+    def _bridge_px(self, c: int) -> int:
+        """Gap (pixels) bridged between fragments of the object's depth foreground in view c."""
+        return max(1, int(round(self.cfg.bridge_fraction * self.sizes[c][1])))
+
+    def _pixel_points(self, c: int, ys: np.ndarray, xs: np.ndarray, z: np.ndarray) -> np.ndarray:
+        """World points (N, 3) of pixels (ys, xs) of view c at depths z (metres)."""
+        if c not in self._rays:  # undistorting every pixel is the costly part: once per camera
+            H, W = self.sizes[c]
+            self._rays[c] = pixel_rays(self.cameras.select([c]), H, W, 1)[0].double().numpy().reshape(H, W, 2)
+        ray = self._rays[c][ys, xs]  # (N, 2) undistorted x/z, y/z
+        cam = np.concatenate([ray * z[:, None], z[:, None]], 1)
+        T = self.cameras.T_world_from_cam[c].double().numpy()
+        return cam @ T[:3, :3].T + T[:3, 3]
+
+    def _points(self, c: int, depth: np.ndarray) -> np.ndarray:
+        """World points (N, 3) of the pixels of one view's depth map with a measurement."""
+        ys, xs = np.nonzero((depth > 0.1) & (depth < 10.0))
+        return self._pixel_points(c, ys, xs, depth[ys, xs].astype(np.float64))
+
+    # -- pose helpers ---------------------------------------------------------------------
+    def world_vertices(self, R: torch.Tensor, t_c: torch.Tensor) -> torch.Tensor:
+        """Centred model vertices posed by (R, centre translation) -> (V, 3)."""
+        return self.vertices_c @ R.T + t_c
+
+    def world_vertices_np(self, R, t) -> np.ndarray:
+        """Vertices of the original mesh under object->world pose (R, t)."""
+        return (self.vertices_c.double().numpy() + self.centroid) @ np.asarray(R).T + np.asarray(t)
+
+    def _to_centre(self, R, t) -> np.ndarray:
+        return np.asarray(R) @ self.centroid + np.asarray(t)
+
+    def _from_centre(self, R, t_c) -> np.ndarray:
+        return np.asarray(t_c) - np.asarray(R) @ self.centroid
+
+    # -- fitting -------------------------------------------------------------------------------
+    def crops_for(self, obs: Observation, R, t) -> torch.Tensor:
+        """(C, 4) square boxes covering the projected pose and the observed mask, per view."""
+        cfg = self.cfg
+        pix, _ = project(torch.as_tensor(self.world_vertices_np(R, t), dtype=torch.float32), self.cameras)
+        boxes = []
+        for c, (H, W) in enumerate(self.sizes):
+            lo, hi = pix[c].amin(0).numpy(), pix[c].amax(0).numpy()
+            if obs.has_view[c]:
+                ys, xs = np.nonzero(obs.mask[c] > 0.5)
+                lo = np.minimum(lo, [xs.min(), ys.min()])
+                hi = np.maximum(hi, [xs.max(), ys.max()])
+            lo, hi = np.maximum(lo, [-W, -H]), np.minimum(hi, [2 * W, 2 * H])
+            centre, half = (lo + hi) / 2, max((hi - lo).max() / 2 * (1 + cfg.crop_margin), 8.0)
+            boxes.append([centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half])
+        return torch.tensor(boxes, dtype=torch.float32)
+
+    def _visible(self, rendered_depth, obs_depth, obs_mask) -> torch.Tensor:
+        """1 where the rendered object could be seen: not behind a measured occluder. The
+        object's own observed pixels never count as occluders, or a pose pushed behind the
+        observed surface would hide from both terms of E_O."""
+        visible = occlusion_weight(rendered_depth, obs_depth, self.cfg.occluder_margin_m)
+        return torch.maximum(visible, (obs_mask > 0.5).to(visible.dtype))
+
+    def energy_terms(self, obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops):
+        """E_O at a pose: (total, silhouette, depth, render output)."""
+        cfg = self.cfg
+        out = render(self.world_vertices(R, t_c)[None], self.topology, self.cameras, crops[None],
+                     size=(cfg.crop_size, cfg.crop_size), sigma=cfg.sigma_px)
+        rendered_depth = out.depth[0]
+        visible = self._visible(rendered_depth.detach(), obs_depth, obs_mask)  # (C, h, w)
+        view_weight = view_weight[:, None, None]
+        sil = object_silhouette(out.silhouette, obs_mask[None], (visible * obs_known * view_weight)[None])
+        # Every observed object pixel counts, covered or not: an uncovered one pays the full
+        # robust cost, so rendering nothing (or too little) is never the cheap answer.
+        depth_weight = (obs_mask > 0.5) & (obs_depth > 0)
+        dep = object_depth(rendered_depth[None], obs_depth[None], (depth_weight * visible * view_weight)[None], cfg.depth_scale_m)
+        total = cfg.w_silhouette * sil + cfg.w_depth * dep
+        return total[0], sil[0], dep[0], out
+
+    def fit(self, obs: Observation, R0, t0, iterations: int | None = None) -> Fit:
+        """Minimise E_O over (6D rotation, translation) from (R0, t0)."""
+        cfg = self.cfg
+        crops = self.crops_for(obs, R0, t0)
+        size = (cfg.crop_size, cfg.crop_size)
+        obs_mask, obs_depth, obs_known = crop_windows(np.stack([obs.mask * obs.known, obs.depth, obs.known]), crops,
+                                                      size, ("area", "nearest", "area"))
+        # The object's share of the pixels whose label is known: where derived masks lose half of a
+        # dark chair's depth to dropouts, the chair still fills its cells, at half the weight.
+        obs_mask = torch.where(obs_known > 1e-3, obs_mask / obs_known.clamp(min=1e-3), torch.zeros_like(obs_mask))
+        view_weight = torch.as_tensor(obs.has_view, dtype=torch.float32)
+        r6 = matrix_to_rotation_6d(torch.tensor(np.asarray(R0), dtype=torch.float32)).clone().requires_grad_(True)
+        t_c = torch.as_tensor(self._to_centre(R0, t0), dtype=torch.float32).clone().requires_grad_(True)
+        optimiser = torch.optim.Adam([{"params": [r6], "lr": cfg.lr_rotation}, {"params": [t_c], "lr": cfg.lr_translation}])
+        best = (np.inf, None, None)
+        stalled, decays = 0, 0
+        for _ in range(cfg.iterations if iterations is None else iterations):
+            optimiser.zero_grad()
+            total, _, _, _ = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight, rotation_6d_to_matrix(r6), t_c, crops)
+            value = total.item()
+            # No relative improvement of `stop_tolerance` for `stop_patience` steps: Adam is circling the
+            # minimum at its step size; go back to the best pose with smaller steps, `lr_decays` times, then stop.
+            stalled = stalled + 1 if value > best[0] * (1 - cfg.stop_tolerance) else 0
+            if value < best[0]:
+                best = (value, r6.detach().clone(), t_c.detach().clone())
+            if stalled >= cfg.stop_patience:
+                if decays == cfg.lr_decays:
+                    break
+                decays, stalled = decays + 1, 0
+                with torch.no_grad():
+                    r6.copy_(best[1])
+                    t_c.copy_(best[2])
+                for group in optimiser.param_groups:
+                    group["lr"] *= cfg.lr_decay
+                continue
+            total.backward()
+            optimiser.step()
+        with torch.no_grad():
+            R = rotation_6d_to_matrix(r6)
+            total, _, _, out = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops)
+            if total.item() > best[0]:
+                R, t_c = rotation_6d_to_matrix(best[1]), best[2]
+                total, _, _, out = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops)
+            # IoU where the label is known and nothing stands in front of the rendered surface:
+            # a hand over the object hides it from the mask without the pose being wrong.
+            seen = (obs_known > 0.25) & (self._visible(out.depth[0], obs_depth, obs_mask) > 0.5)
+            confidence = self._iou(out.coverage[0] & seen, (obs_mask > 0.5) & seen, obs.has_view)
+        R = R.detach().double().numpy()
+        return Fit(R=R, t=self._from_centre(R, t_c.detach().double().numpy()), energy=float(total), confidence=confidence)
+
+    @staticmethod
+    def _iou(rendered: torch.Tensor, observed: torch.Tensor, has_view: np.ndarray) -> float:
+        inter = (rendered & observed).flatten(1).sum(1).float()
+        union = (rendered | observed).flatten(1).sum(1).float().clamp(min=1)
+        iou = (inter / union).numpy()[has_view]
+        return float(iou.mean()) if len(iou) else 0.0
+
+    # -- initialisation ----------------------------------------------------------------------
+    def object_points(self, obs: Observation) -> np.ndarray:
+        """World points of the object masks of all views, (N, 3)."""
+        clouds = [self._points(c, obs.depth[c, :h, :w] * (obs.mask[c, :h, :w] > 0.5))
+                  for c, (h, w) in enumerate(self.sizes) if obs.has_view[c]]
+        return np.concatenate(clouds) if clouds else np.zeros((0, 3))
+
+    def registration_hypotheses(self, points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Candidate object->world poses (R, t) registering the mesh to observed points: PCA alignments with
+        every proper axis flip, and FPFH RANSAC global registrations, each refined by ICP; the
+        `init_keep` distinct best (ICP fitness), and the best one's quarter turns, refined again."""
+        cfg = self.cfg
+        voxel = self._voxel()
+        scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)
+        scene, _ = scene.remove_statistical_outlier(20, 2.0)
+        if len(scene.points) < 30:
+            return []
+        if len(scene.points) > cfg.init_max_points:  # ICP's cost is per scene point
+            scene = scene.uniform_down_sample(int(np.ceil(len(scene.points) / cfg.init_max_points)))
+        scene_pts = np.asarray(scene.points)
+        model_pts = np.asarray(self.model_cloud.points)
+        starts = []
+        _, _, v_model = np.linalg.svd(model_pts - model_pts.mean(0), full_matrices=False)
+        _, _, v_scene = np.linalg.svd(scene_pts - scene_pts.mean(0), full_matrices=False)
+        for signs in ([1, 1, 1], [1, -1, -1], [-1, 1, -1], [-1, -1, 1]):
+            for perm in ([0, 1, 2], [1, 0, 2], [0, 2, 1], [2, 1, 0], [1, 2, 0], [2, 0, 1]):
+                A = v_scene[perm] * np.array(signs)[:, None]
+                R = A.T @ v_model  # model axes onto scene axes
+                if np.linalg.det(R) < 0:
+                    continue
+                starts.append((R, scene_pts.mean(0)))
+        starts += self._global_registrations(scene)
+        # Rank by how much of the scene lies on the model surface, then by residual.
+        refined = sorted((self._icp(scene, R, centre, voxel) for R, centre in starts), key=lambda r: (round(r[0], 2), r[1]))
+        kept = distinct([(R, centre) for _, _, R, centre in refined], 2 * voxel)[: cfg.init_keep]
+        # Part of a cylinder registers with its axis sideways about as well as upright, and a chair's
+        # seat and legs fit every quarter turn: the best one's turns, registered again, join in.
+        _, _, R, centre = refined[0]
+        turned = [self._icp(scene, R @ S, centre, voxel, fine_only=True) for S in self.turns]
+        kept += distinct([(R, c) for _, _, R, c in turned], 2 * voxel, kept)
+        return [(R, self._from_centre(R, centre)) for R, centre in kept]
+
+    def _icp(self, scene, R, centre, voxel: float, fine_only: bool = False):
+        """ICP (point-to-plane) of the observed points onto the model from pose (R, centre):
+        (-fitness, inlier rmse, R, centre)."""
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R.T, -R.T @ centre  # scene -> centred model
+        for dist in (voxel * 4, voxel * 2) if fine_only else (voxel * 12, voxel * 4, voxel * 2):
+            result = reg.registration_icp(scene, self.model_cloud, dist, T, reg.TransformationEstimationPointToPlane())
+            T = result.transformation
+        Rw = T[:3, :3].T
+        return -result.fitness, result.inlier_rmse, Rw, -Rw @ T[:3, 3]
+
+    def _voxel(self) -> float:
+        """Registration voxel (m): `voxel_size_m`, coarser for large objects (a chair seen by four
+        cameras gives ~15k points; ICP's cost grows with them, its accuracy does not)."""
+        return max(self.cfg.voxel_size_m, self.extent * self.cfg.voxel_fraction)
+
+    def _global_registrations(self, scene) -> list[tuple[np.ndarray, np.ndarray]]:
+        cfg = self.cfg
+        voxel = self._voxel() * 2
+        feats = []
+        for cloud in (self.model_cloud.voxel_down_sample(voxel), scene.voxel_down_sample(voxel)):
+            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * 3, max_nn=30))
+            feats.append((cloud, reg.compute_fpfh_feature(cloud, o3d.geometry.KDTreeSearchParamHybrid(radius=voxel * 6, max_nn=100))))
+        (model, fm), (sc, fs) = feats
+        out = []
+        for k in range(cfg.init_global_tries):
+            o3d.utility.random.seed(cfg.seed + k)
+            result = reg.registration_ransac_based_on_feature_matching(
+                model, sc, fm, fs, True, voxel * 2, reg.TransformationEstimationPointToPoint(False), 3,
+                [reg.CorrespondenceCheckerBasedOnDistance(voxel * 2)], reg.RANSACConvergenceCriteria(cfg.init_ransac_iterations, 0.999))
+            T = result.transformation  # model -> scene
+            out.append((T[:3, :3], T[:3, 3]))
+        return out
+
+    def refit(self, obs: Observation, fit: Fit, predicted) -> Fit:
+        """Local recovery before registration: the predicted pose and the fit's, each turned by
+        90/180/270 deg about every principal axis of the mesh (a chair's seat and legs look
+        alike every 90 deg, only the backrest tells; a wrong turn drags the fit off the
+        object's place, hence the prediction's turns), and the two lowest-E_O of them fitted
+        with the full iteration budget."""
+        starts = self.turned(*predicted) + self.turned(fit.R, fit.t)
+        scored = sorted((self.fit(obs, R, t, iterations=0) for R, t in starts), key=lambda f: f.energy)
+        fits = [self.fit(obs, f.R, f.t, iterations=self.cfg.iterations) for f in scored[:2]]
+        return min(fits, key=lambda f: f.energy)
+
+    def turned(self, R, t) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Pose (R, t) turned about its centre by 90/180/270 deg about each principal axis of the mesh."""
+        centre = self._to_centre(R, t)
+        return [(R @ S, self._from_centre(R @ S, centre)) for S in self.turns]
+
+    def initialise(self, obs: Observation, extra: list | None = None) -> Fit | None:
+        """Best of the registration hypotheses (plus `extra` poses): the few with the lowest
+        E_O get a short fit, the best of those the full one."""
+        hypotheses = list(extra or []) + self.registration_hypotheses(self.object_points(obs))
+        if not hypotheses:
+            return None
+        scored = sorted((self.fit(obs, R, t, iterations=0) for R, t in hypotheses), key=lambda f: f.energy)
+        fits = [self.fit(obs, f.R, f.t, iterations=self.cfg.init_iterations) for f in scored[: self.cfg.init_refine]]
+        best = min(fits, key=lambda f: f.energy)
+        return self.fit(obs, best.R, best.t)
+
+
+TRACKED, REINITIALISED, LOST, UNTRUSTED = 1, 2, 3, 4
+STATUS_NAMES = {0: "pending", TRACKED: "tracked", REINITIALISED: "reinitialised", LOST: "lost", UNTRUSTED: "untrusted"}
+
+
+def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None = None, progress: bool = True,
+          initial_pose=None) -> dict[str, np.ndarray]:
+    """Track the object through `frame_ids`; resumes from `checkpoint` when it exists.
+
+    Per frame: fit from the constant-velocity prediction (or, for up to
+    `coast_frames` after the last trusted frame, from that frame's pose). A fit
+    whose silhouette IoU is below `min_confidence` or whose E_O is above
+    `reinit_energy_ratio` times its recent level is searched again, locally
+    (`ObjectTracker.refit`, ~0.5 s) and, if that fails too, from registration
+    hypotheses (`initialise`, seconds); the lowest E_O wins. Its pose is trusted
+    when the IoU is enough and E_O at most `trust_energy_ratio` times the level;
+    other frames, and those where no view sees the object, are marked (NaN pose,
+    confidence 0). With derived masks, nothing near the prediction sends the
+    search over the whole foreground before the frame is called lost.
+
+    Returns R (T,3,3), t (T,3) (NaN where untrusted), confidence (T,), status (T,),
+    energy (T,) and confirmed (T,): a search found nothing better than the tracked
+    pose, so its E_O is the new level (for the next 5 frames at least)."""
+    cfg = tracker.cfg
+    T = len(frame_ids)
+    state = {"R": np.full((T, 3, 3), np.nan), "t": np.full((T, 3), np.nan), "confidence": np.zeros(T),
+             "status": np.zeros(T, np.int64), "energy": np.full(T, np.nan), "confirmed": np.zeros(T, bool)}
+    start = 0
+    if checkpoint is not None and checkpoint.exists():
+        saved = dict(np.load(checkpoint))
+        if len(saved["status"]) == T:
+            state = {k: saved[k] if k in saved else state[k] for k in state}
+            start = int(saved["next"])
+            log.info("object: resuming at frame %d of %d", start, T)
+    history = [None if state["status"][i] not in (TRACKED, REINITIALISED) else (state["R"][i], state["t"][i])
+               for i in range(start)]
+    for i in tqdm(range(start, T), desc="object", disable=not progress, initial=start, total=T):
+        frame_id = int(frame_ids[i])
+        predicted, reach = predict_pose(history), 0.0
+        if predicted is None and i == 0 and initial_pose is not None:
+            predicted = initial_pose
+        trusted_at = [k for k in range(max(0, i - cfg.coast_frames), i) if history[k] is not None]
+        if trusted_at:
+            k = trusted_at[-1]
+            if predicted is None:
+                predicted = history[k]  # coast: the object was seen recently, start where it was
+            # How far the object may be from the prediction: its largest recent step, per frame since.
+            steps = [np.linalg.norm(tracker._to_centre(*history[j]) - tracker._to_centre(*history[j - 1]))
+                     for j in trusted_at[-5:] if j > 0 and history[j - 1] is not None]
+            reach = max(steps, default=0.0) * (i - k)
+        obs = tracker.observe(frame_id, predicted, reach)
+        if predicted is not None and not tracker.use_masks and obs.visible_views < cfg.min_views:
+            # Nothing near where the object should be: look for it anywhere before calling it lost.
+            predicted = None
+            obs = tracker.observe(frame_id, None)
+        # E_O's level: the median over the last 5 frames with a fit (trusted or not: where the
+        # object's visible part changes for good, say a cup put down out of the hand, a few
+        # frames marked untrusted raise the level and tracking is trusted again).
+        window = state["energy"][max(0, i - cfg.energy_window):i]
+        recent = window[np.isfinite(window)][-5:]
+        reference = float(np.median(recent)) if len(recent) > 2 else np.inf
+        # A search in the last few frames that found nothing better than the tracked pose
+        # confirmed a new level (a hand now covers part of the object): no new search for it.
+        confirmed = state["energy"][max(0, i - 5):i][state["confirmed"][max(0, i - 5):i]]
+        if len(confirmed):
+            reference = max(reference, float(confirmed.max()))
+
+        def good(f: Fit | None, ratio: float = cfg.reinit_energy_ratio) -> bool:
+            """Silhouettes agree and E_O is not far above its level in recent trusted frames."""
+            return f is not None and f.confidence >= cfg.min_confidence and f.energy <= ratio * reference
+
+        fit, status = None, LOST
+        if obs.visible_views >= cfg.min_views:
+            if predicted is None:
+                fit, status = tracker.initialise(obs), REINITIALISED
+            else:
+                fit, status = tracker.fit(obs, *predicted), TRACKED
+                if not good(fit):
+                    local = tracker.refit(obs, fit, predicted)
+                    if local.energy < fit.energy:
+                        fit = local
+                    if not good(fit):
+                        alternative = tracker.initialise(obs, extra=[predicted, (fit.R, fit.t)])
+                        better = alternative is not None and alternative.energy <= cfg.confirm_ratio * fit.energy
+                        state["confirmed"][i] = not better
+                        if alternative is not None and alternative.energy < fit.energy:
+                            fit, status = alternative, REINITIALISED
+        trusted = good(fit, cfg.trust_energy_ratio)  # a hand closing round the object raises E_O a little
+        if fit is not None:
+            state["energy"][i] = fit.energy
+            state["confidence"][i] = fit.confidence if trusted else 0.0
+        if trusted:
+            state["R"][i], state["t"][i] = fit.R, fit.t
+            state["status"][i] = status
+        else:
+            state["status"][i] = UNTRUSTED if fit is not None else LOST
+        history.append((fit.R, fit.t) if trusted else None)
+        if checkpoint is not None and ((i + 1) % cfg.checkpoint_every == 0 or i + 1 == T):
+            save_npz(checkpoint, next=i + 1, **state)
+    return state
+
+
+def draw_overlay(session, tracker: ObjectTracker, frame_id: int, R, t, path: Path) -> None:
+    """Colour views side by side with the tracked object's outline drawn on them."""
+    sils = hard_silhouettes(tracker.world_vertices_np(R, t), tracker.faces, tracker.cameras, tracker.sizes) if np.isfinite(R).all() else None
+    tiles = []
+    for c, (H, W) in enumerate(tracker.sizes):
+        color = session.read_color(c, frame_id)
+        img = np.zeros((H, W, 3), np.uint8) if color is None else cv2.cvtColor(color, cv2.COLOR_RGB2BGR)
+        if sils is not None:
+            contours, _ = cv2.findContours(sils[c].astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+            cv2.drawContours(img, contours, -1, (0, 255, 0), 1)
+        tiles.append(cv2.resize(img, (W * 240 // H, 240)))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), np.concatenate(tiles, axis=1), [cv2.IMWRITE_JPEG_QUALITY, 85])
+
+
+def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
+    """The `object` stage: writes OUT/object_poses.npz and OUT/object/."""
+    if session.object is None:
+        log.info("object: the session has no object; nothing to track")
+        return {"skipped": "no object in session"}
+    ocfg = cfg.object
+    torch.manual_seed(ocfg.seed)
+    stage_dir = Path(out_dir) / "object"
+    tracker = ObjectTracker(session, ocfg, session.object.load_mesh(), device=cfg.run.device)
+    state = track(tracker, session.frame_ids, stage_dir / "progress.npz", progress, session.object.initial_pose)
+    valid = np.isin(state["status"], (TRACKED, REINITIALISED))
+    save_npz(stage_dir / "object_poses.npz", R=state["R"], t=state["t"], confidence=state["confidence"],
+             valid=valid, status=state["status"], frame_ids=session.frame_ids)
+    publish(stage_dir / "object_poses.npz", Path(out_dir) / "object_poses.npz")
+    for i in range(0, session.num_frames, max(1, ocfg.overlay_every)):
+        draw_overlay(session, tracker, int(session.frame_ids[i]), state["R"][i], state["t"][i],
+                     stage_dir / "overlays" / f"{int(session.frame_ids[i]):06d}.jpg")
+    counts = {STATUS_NAMES[s]: int((state["status"] == s).sum()) for s in (TRACKED, REINITIALISED, LOST, UNTRUSTED)}
+    return {
+        "masks": "session" if tracker.use_masks else "derived",
+        "frames_trusted": int(valid.sum()),
+        **{f"frames_{k}": v for k, v in counts.items()},
+        "mean_confidence": float(state["confidence"][valid].mean()) if valid.any() else 0.0,
+    }

@@ -1,0 +1,178 @@
+"""Stage 1, `prepare`: world point clouds, the ground plane, the calibration check.
+
+Depth of every view is back-projected with its calibration (distortion
+included) into one world frame. The ground plane comes from session.yaml when
+given, else from RANSAC on clouds fused over a few frames spread through the
+sequence, with its up side chosen where the person stands. The calibration
+check registers each camera's cloud onto its neighbour's (ICP) on a few frames
+and reports how far they disagree, because calibration drift is the first
+thing that goes wrong on real rigs.
+
+Writes OUT/prepare/: ground.json, calibration_check.json, clouds/*.ply (fused,
+coloured clouds of the checked frames, for a person to open).
+"""
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from intercap.calib.alignment import check_calibration, format_agreement
+from intercap.config import Config
+from intercap.geometry.cameras import Cameras, depth_to_point_grid, pixel_rays
+from intercap.geometry.ground import GroundPlane, fit_ground_plane, up_hint_from_cameras
+from intercap.geometry.pointclouds import fuse_points
+from intercap.io.files import write_json, write_point_cloud_ply
+
+log = logging.getLogger(__name__)
+
+
+def spread_frames(frame_ids: np.ndarray, count: int) -> np.ndarray:
+    """`count` frame ids evenly spread over the sequence (all when fewer)."""
+    if len(frame_ids) <= count:
+        return np.asarray(frame_ids)
+    return np.asarray(frame_ids)[np.round(np.linspace(0, len(frame_ids) - 1, count)).astype(int)]
+
+
+class ViewClouds:
+    """World point clouds of one frame's views, with each camera's undistorted
+    pixel rays computed once per run (undistortion is the costly part)."""
+
+    def __init__(self, session, cameras: Cameras, cfg):
+        self.session, self.cameras, self.cfg = session, cameras, cfg
+        self._rays: dict[int, torch.Tensor] = {}
+
+    def rays(self, c: int) -> torch.Tensor:
+        if c not in self._rays:
+            info = self.session.cameras[c]
+            self._rays[c] = pixel_rays(self.cameras.select([c]), info.height, info.width, self.cfg.pixel_stride)
+        return self._rays[c]
+
+    def frame(self, frame_id: int) -> list[dict]:
+        """Per view: world points (N, 3), colours (N, 3) uint8 and person flags (N,).
+
+        A dropped view gives empty arrays. Views may differ in resolution, so
+        this loops over the few cameras, each vectorised over its pixels."""
+        cfg, stride = self.cfg, self.cfg.pixel_stride
+        views = []
+        for c in range(len(self.session.cameras)):
+            depth = self.session.read_depth(c, frame_id)
+            if depth is None:
+                views.append({"points": np.zeros((0, 3)), "colors": np.zeros((0, 3), np.uint8), "person": np.zeros(0, bool)})
+                continue
+            points, valid = depth_to_point_grid(
+                torch.from_numpy(depth)[None].to(self.cameras.K.dtype), self.cameras.select([c]), stride,
+                cfg.depth_min_m, cfg.depth_max_m, rays=self.rays(c),
+            )
+            valid = valid[0].numpy()
+            count = int(valid.sum())
+            color = self.session.read_color(c, frame_id)
+            colors = color[::stride, ::stride].reshape(-1, 3)[valid] if color is not None else np.full((count, 3), 160, np.uint8)
+            person = self.session.read_mask(c, frame_id, "person")
+            person = person[::stride, ::stride].reshape(-1)[valid] if person is not None else np.zeros(count, bool)
+            views.append({"points": points[0].numpy()[valid].astype(np.float64), "colors": colors, "person": person})
+        return views
+
+
+def estimate_ground(session, clouds: ViewClouds, cfg, progress: bool) -> tuple[GroundPlane, str]:
+    """The ground plane from session.yaml, or RANSAC on fused clouds of a few frames."""
+    if session.ground is not None:
+        point, normal = session.ground
+        normal = np.asarray(normal, float) / np.linalg.norm(normal)
+        return GroundPlane(point=np.asarray(point, float), normal=normal, inlier_ratio=float("nan"), rmse_m=float("nan")), "session"
+    scene, person = [], []
+    for frame_id in tqdm(spread_frames(session.frame_ids, cfg.ground_frames), desc="prepare: ground", disable=not progress):
+        for view in clouds.frame(int(frame_id)):
+            scene.append(view["points"][~view["person"]])
+            person.append(view["points"][view["person"]])
+    fused = fuse_points(scene, cfg.voxel_size_m)
+    person_points = np.concatenate(person) if person else np.zeros((0, 3))
+    plane = fit_ground_plane(
+        fused,
+        distance_threshold=cfg.plane_distance_m,
+        iterations=cfg.plane_iterations,
+        seed=cfg.seed,
+        person_points=person_points if len(person_points) > 100 else None,
+        up_hint=up_hint_from_cameras(clouds.cameras.T_world_from_cam.double().numpy()),
+    )
+    return plane, "ransac"
+
+
+AGREEMENT_FIELDS = ("cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
+                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg")
+
+
+def agreement_rows(results: list, frames: int) -> list[dict]:
+    """The calibration check's per-pair figures as JSON-ready rows."""
+    return [{**{key: getattr(r, key) for key in AGREEMENT_FIELDS}, "frames": frames} for r in results]
+
+
+def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
+    """Run the prepare stage; returns the figures that go into metrics.json."""
+    pcfg = cfg.prepare
+    stage_dir = Path(out_dir) / "prepare"
+    cameras = Cameras.from_infos(session.cameras, dtype=torch.float32)
+
+    clouds = ViewClouds(session, cameras, pcfg)
+    plane, source = estimate_ground(session, clouds, pcfg, progress)
+    write_json(stage_dir / "ground.json", {**plane.to_dict(), "source": source})
+    log.info("ground plane (%s): normal %s, rmse %.1f mm", source, np.round(plane.normal, 4), plane.rmse_m * 1e3)
+
+    names = [c.name for c in session.cameras]
+    centers = cameras.centers.numpy()
+    checked = spread_frames(session.frame_ids, pcfg.calib_frames)
+    # Per camera, its clouds over the checked frames: the cameras are synchronised, so each
+    # frame's person is at the same place in every view, and more points beat the depth noise.
+    fused = [[] for _ in names]
+    used_frames = 0
+    for frame_id in tqdm(checked, desc="prepare: calibration check", disable=not progress):
+        views = clouds.frame(int(frame_id))
+        if pcfg.save_clouds:
+            write_point_cloud_ply(
+                stage_dir / "clouds" / f"{int(frame_id):06d}.ply",
+                np.concatenate([v["points"] for v in views]),
+                np.concatenate([v["colors"] for v in views]),
+            )
+        if sum(len(v["points"]) > 0 for v in views) < 2:
+            continue
+        used_frames += 1
+        for c, v in enumerate(views):
+            fused[c].append(v["points"])
+    results = []
+    if used_frames:
+        results = check_calibration([np.concatenate(f) for f in fused], names, centers,
+                                    max_distance=pcfg.icp_max_distance_m,
+                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02))
+    pairs = agreement_rows(results, used_frames)
+    flagged = [p for p in pairs if p["correction_translation_mm"] > pcfg.calib_warn_mm
+               or p["correction_rotation_deg"] > pcfg.calib_warn_deg]
+    write_json(stage_dir / "calibration_check.json", {"frames": [int(f) for f in checked], "pairs": pairs,
+                                                      "warn_mm": pcfg.calib_warn_mm, "flagged": flagged})
+    if results:
+        log.info("calibration check (clouds fused over %d frames)\n%s", used_frames,
+                 format_agreement(results, warn_mm=pcfg.calib_warn_mm, warn_deg=pcfg.calib_warn_deg))
+    for p in flagged:
+        log.warning("cameras %s and %s disagree by %.1f mm / %.2f deg: check the calibration",
+                    p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["correction_rotation_deg"])
+
+    corrections = [p["correction_translation_mm"] for p in pairs if np.isfinite(p["correction_translation_mm"])]
+    return {
+        "ground_source": source,
+        "ground_rmse_mm": plane.rmse_m * 1e3,
+        "ground_inlier_ratio": plane.inlier_ratio,
+        "calibration_max_correction_mm": max(corrections) if corrections else None,
+        "calibration_pairs_flagged": len(flagged),
+    }
+
+
+def load_ground(out_dir: Path) -> GroundPlane:
+    """The ground plane a finished prepare stage saved."""
+    from intercap.io.files import read_json
+
+    data = read_json(Path(out_dir) / "prepare" / "ground.json")
+    return GroundPlane(point=np.array(data["point"]), normal=np.array(data["normal"]),
+                       inlier_ratio=data["inlier_ratio"], rmse_m=data["rmse_m"])
+

@@ -1,0 +1,915 @@
+"""Scripted human-object interactions for synthetic sessions.
+
+A `Script` is data: named phases (seconds), eased keyframes for the body's
+posture, heading, gait, hand targets and finger closure, and the object's
+anchors. `animate` turns a script into per-frame body parameters, world-space
+vertices and keypoints, object poses and contact labels:
+
+1. keyframes -> per-frame bone rotations (quaternion slerp with smoothstep
+   easing) plus a phase-driven walk cycle (legs swing, knees flex in swing,
+   arms counter-swing);
+2. the root follows the stance foot (no foot skating) and is lifted so the
+   lowest vertex touches the floor z = 0;
+3. the object's track is planned from its anchors (fixed in the world,
+   carried in the person's heading frame, or held at the mouth);
+4. L-BFGS on the body model bends the arms (and a little the spine) so each
+   palm lies on its grasp point, facing the surface, with the hand kept out of
+   the object and above the floor (solved at <= 5 Hz, spread, polished per frame);
+5. per-finger curls (and the thumb) close until the fingers touch the object
+   without sinking in (a signed-distance grid of the object, differentiable).
+While the hands hold it, the object therefore moves rigidly with them: its pose
+is the plan and the hands follow it (the measured gap is reported).
+
+The bone names and axes are anny's (local-ref parameterisation, axes aligned
+with the model axes at rest; the person faces -y with left on +x):
+x flexes the spine forward (+), swings the thigh back (+) / forward (-) and
+bends the knee (+); for the arms x swings the arm back (+) / forward (-).
+"""
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial.transform import Rotation, Slerp
+
+from intercap.synth.objects import ObjectSpec, SdfGrid, SurfaceDistance
+
+SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair")
+
+# Bones the IK may move, with the weight of their pull back to the scripted pose.
+IK_BONES = {
+    "spine03": 120.0, "spine02": 120.0, "spine01": 120.0,
+    "clavicle.L": 10.0, "clavicle.R": 10.0,
+    "upperarm01.L": 0.5, "upperarm01.R": 0.5, "upperarm02.L": 2.0, "upperarm02.R": 2.0,
+    "lowerarm01.L": 0.5, "lowerarm01.R": 0.5, "lowerarm02.L": 1.0, "lowerarm02.R": 1.0,
+    "wrist.L": 1.0, "wrist.R": 1.0,
+}
+SIDES = {"left": "L", "right": "R"}
+HAND_OFFSET = {"L": 25, "R": 46}  # first keypoint of each hand in the 67-keypoint layout
+FINGER_BONE_PREFIX = ["finger1", "finger2", "finger3", "finger4", "finger5"]  # thumb .. little
+
+
+# ----------------------------------------------------------------------------- scripts
+@dataclass
+class ObjectKey:
+    """The object's pose at time `t`: `rel` (4x4) in the person's heading frame,
+    taken at time `t` when `frame == 'body'` (carried) or at time `ref` when
+    `frame == 'world'` (resting where it was put); `frame == 'head'`: the
+    heading frame moved to the nose (brought to the mouth)."""
+
+    t: float
+    frame: str
+    rel: np.ndarray
+    ref: float = 0.0
+    on_floor: bool = False  # rest on the floor: the height becomes the object's own half height
+
+
+@dataclass
+class Script:
+    """A scripted interaction: phases and eased keyframes, times in seconds.
+
+    pose_keys: (t, {bone: axis-angle}) posture, unnamed bones at rest;
+    pitch_keys: (t, rad) forward tilt of the pelvis; yaw_keys: (t, rad) heading
+    change (left turn +); walk_keys: (t, signed gait intensity, + forward);
+    reach_keys: (t, weight of the grasp targets in the IK); gap_keys: (t, metres
+    the palms stay off the surface along its normal, approach/withdraw);
+    close_keys: (t, finger closure 0 relaxed .. 1 touching); contact: phases
+    during which the hands touch the object; props: static scene meshes (name,
+    kind, rel pose in the heading frame at time 0)."""
+
+    name: str
+    duration: float
+    phases: dict
+    default_object: str
+    hands: tuple
+    pose_keys: list
+    pitch_keys: list
+    yaw_keys: list
+    walk_keys: list
+    reach_keys: list
+    gap_keys: list
+    close_keys: list
+    object_keys: list
+    contact: tuple
+    props: list = field(default_factory=list)
+
+
+def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
+    """A 4x4 pose in the heading frame (x right, y forward, z up, metres)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+# Postures (anny bone -> axis-angle), mirrored for the two sides where it matters.
+ARMS_RELAXED = {"upperarm01.L": (0.0, 0.55, 0.0), "upperarm01.R": (0.0, -0.55, 0.0),
+                "lowerarm01.L": (-0.15, 0.0, 0.0), "lowerarm01.R": (-0.15, 0.0, 0.0)}
+
+
+def _stoop(depth: float, arms_forward: float = 1.0) -> dict:
+    """Bend down to reach low: knees and hips flex, spine rounds, arms go forward."""
+    d = depth
+    pose = {
+        "upperleg01.L": (-1.05 * d, 0.0, 0.0), "upperleg01.R": (-1.05 * d, 0.0, 0.0),
+        "lowerleg01.L": (1.25 * d, 0.0, 0.0), "lowerleg01.R": (1.25 * d, 0.0, 0.0),
+        "foot.L": (-0.45 * d, 0.0, 0.0), "foot.R": (-0.45 * d, 0.0, 0.0),
+        "spine04": (0.18 * d, 0.0, 0.0), "spine03": (0.18 * d, 0.0, 0.0), "spine02": (0.12 * d, 0.0, 0.0),
+        "neck01": (-0.25 * d, 0.0, 0.0), "head": (-0.2 * d, 0.0, 0.0),
+        "upperarm01.L": (-0.7 * arms_forward, 0.15, 0.0), "upperarm01.R": (-0.7 * arms_forward, -0.15, 0.0),
+        "lowerarm01.L": (-0.3, 0.0, 0.0), "lowerarm01.R": (-0.3, 0.0, 0.0),
+    }
+    return pose
+
+
+def _hold(elbow: float = 1.2, forward: float = 0.5) -> dict:
+    """Upright, forearms raised in front of the body (carrying or pushing)."""
+    return {
+        "upperarm01.L": (-forward, 0.15, 0.0), "upperarm01.R": (-forward, -0.15, 0.0),
+        "lowerarm01.L": (-elbow, 0.0, 0.0), "lowerarm01.R": (-elbow, 0.0, 0.0),
+    }
+
+
+def pick_place() -> Script:
+    """Walk to a box on the floor, bend, grasp it with both hands, lift, carry
+    while turning left, put it down, let go and step back."""
+    phases = {
+        "approach": (0.0, 1.8), "reach": (1.8, 2.7), "grasp": (2.7, 3.0), "lift": (3.0, 3.8),
+        "carry_turn": (3.8, 5.0), "put_down": (5.0, 5.8), "release": (5.8, 6.1), "step_back": (6.1, 7.2),
+    }
+    stoop = _stoop(1.0)
+    carry = _hold(elbow=1.3, forward=0.35)
+    pose_keys = [(0.0, ARMS_RELAXED), (1.8, ARMS_RELAXED), (2.7, stoop), (3.0, stoop), (3.8, carry),
+                 (5.0, carry), (5.8, stoop), (6.1, stoop), (6.9, ARMS_RELAXED)]
+    pitch_keys = [(0.0, 0.0), (1.8, 0.0), (2.7, 0.55), (3.0, 0.55), (3.8, 0.05), (5.0, 0.05), (5.8, 0.55),
+                  (6.1, 0.55), (6.9, 0.0)]
+    yaw_keys = [(0.0, 0.0), (3.9, 0.0), (4.9, np.pi / 2)]
+    walk_keys = [(0.0, 0.0), (0.3, 1.0), (1.3, 1.0), (1.8, 0.0), (3.8, 0.0), (4.0, 0.45), (4.7, 0.45),
+                 (5.0, 0.0), (6.3, 0.0), (6.5, -0.55), (7.0, -0.55), (7.2, 0.0)]
+    reach_keys = [(0.0, 0.0), (2.0, 0.0), (2.6, 1.0), (6.1, 1.0), (6.6, 0.0)]
+    gap_keys = [(0.0, 0.12), (2.0, 0.12), (2.7, 0.0), (5.8, 0.0), (6.3, 0.12)]
+    close_keys = [(0.0, 0.0), (2.7, 0.0), (3.0, 1.0), (5.8, 1.0), (6.0, 0.0)]
+    floor = _rel(0.0, 0.47, 0.075)  # box centre: 0.47 m ahead, lying on the floor
+    carry_rel = _rel(0.0, 0.40, 0.88)
+    object_keys = [
+        ObjectKey(0.0, "world", floor, ref=2.7, on_floor=True), ObjectKey(3.0, "world", floor, ref=2.7, on_floor=True),
+        ObjectKey(3.8, "body", carry_rel), ObjectKey(5.0, "body", carry_rel),
+        ObjectKey(5.8, "world", floor, ref=5.8, on_floor=True), ObjectKey(7.2, "world", floor, ref=5.8, on_floor=True),
+    ]
+    return Script("pick_place", 7.2, phases, "box", ("left", "right"), pose_keys, pitch_keys, yaw_keys,
+                  walk_keys, reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "put_down"))
+
+
+def lift_drink() -> Script:
+    """Stand at a table, pick up a cup with the right hand, drink, put it back."""
+    phases = {"stand": (0.0, 0.6), "reach": (0.6, 1.5), "grasp": (1.5, 1.8), "lift": (1.8, 2.7),
+              "drink": (2.7, 3.7), "lower": (3.7, 4.6), "release": (4.6, 4.9), "retract": (4.9, 5.8)}
+    relaxed = ARMS_RELAXED
+    reach = dict(ARMS_RELAXED, **{"upperarm01.R": (-0.6, 0.1, 0.0), "lowerarm01.R": (-0.6, 0.0, 0.0),
+                                  "spine03": (0.08, 0.0, 0.0)})
+    drink = dict(ARMS_RELAXED, **{"upperarm01.R": (-0.6, 0.3, 0.0), "lowerarm01.R": (-2.0, 0.0, 0.0),
+                                  "head": (0.12, 0.0, 0.0), "neck01": (-0.15, 0.0, 0.0)})
+    drink_tilt = dict(drink, **{"head": (-0.12, 0.0, 0.0), "neck01": (-0.25, 0.0, 0.0)})
+    pose_keys = [(0.0, relaxed), (0.6, relaxed), (1.5, reach), (1.8, reach), (2.7, drink), (3.0, drink_tilt),
+                 (3.4, drink_tilt), (3.7, drink), (4.6, reach), (4.9, reach), (5.8, relaxed)]
+    pitch_keys = [(0.0, 0.0), (0.6, 0.0), (1.5, 0.12), (1.8, 0.12), (2.7, 0.0), (3.7, 0.0), (4.6, 0.12),
+                  (4.9, 0.12), (5.8, 0.0)]
+    yaw_keys = [(0.0, 0.0)]
+    walk_keys = [(0.0, 0.0)]
+    reach_keys = [(0.0, 0.0), (0.8, 0.0), (1.4, 1.0), (4.9, 1.0), (5.4, 0.0)]
+    gap_keys = [(0.0, 0.10), (0.8, 0.10), (1.5, 0.0), (4.6, 0.0), (5.1, 0.10)]
+    close_keys = [(0.0, 0.0), (1.5, 0.0), (1.8, 1.0), (4.6, 1.0), (4.8, 0.0)]
+    table_h = 0.74
+    on_table = _rel(0.12, 0.42, table_h + 0.05)
+    # relative to the nose: the tilted cup's near rim touches the lips (4-5 cm below the nose)
+    # (turned 0.6 rad about the vertical so the right hand holds it from the front-right)
+    turn = Rotation.from_rotvec((0.0, 0.0, 0.6))
+    at_mouth = _rel(0.01, 0.12, -0.12, rotvec=turn.as_rotvec())
+    tilted = _rel(0.0, 0.068, -0.066, rotvec=(Rotation.from_rotvec((0.6, 0.0, 0.0)) * turn).as_rotvec())
+    object_keys = [
+        ObjectKey(0.0, "world", on_table, ref=0.0), ObjectKey(1.8, "world", on_table, ref=0.0),
+        ObjectKey(2.7, "head", at_mouth), ObjectKey(3.0, "head", tilted), ObjectKey(3.4, "head", tilted),
+        ObjectKey(3.7, "head", at_mouth), ObjectKey(4.6, "world", on_table, ref=0.0),
+        ObjectKey(5.8, "world", on_table, ref=0.0),
+    ]
+    props = [("table", "table", _rel(0.05, 0.55, table_h / 2))]
+    return Script("lift_drink", 5.8, phases, "cup", ("right",), pose_keys, pitch_keys, yaw_keys, walk_keys,
+                  reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "lower"), props=props)
+
+
+def push_chair() -> Script:
+    """Step behind a chair, put both hands on its back, push it forward while
+    walking, let go and step back."""
+    phases = {"stand": (0.0, 0.4), "reach": (0.4, 1.2), "grasp": (1.2, 1.5), "push": (1.5, 3.9),
+              "release": (3.9, 4.2), "step_back": (4.2, 5.4)}
+    lean = dict(_hold(elbow=0.5, forward=0.6), **{"spine03": (0.1, 0.0, 0.0), "spine02": (0.05, 0.0, 0.0)})
+    pose_keys = [(0.0, ARMS_RELAXED), (0.4, ARMS_RELAXED), (1.2, lean), (4.2, lean), (5.0, ARMS_RELAXED)]
+    pitch_keys = [(0.0, 0.0), (0.4, 0.0), (1.2, 0.15), (4.2, 0.15), (5.0, 0.0)]
+    yaw_keys = [(0.0, 0.0), (2.2, 0.0), (3.4, 0.35)]
+    walk_keys = [(0.0, 0.0), (1.5, 0.0), (1.9, 0.7), (3.5, 0.7), (3.9, 0.0), (4.3, 0.0), (4.5, -0.55),
+                 (5.1, -0.55), (5.4, 0.0)]
+    reach_keys = [(0.0, 0.0), (0.5, 0.0), (1.1, 1.0), (4.2, 1.0), (4.7, 0.0)]
+    gap_keys = [(0.0, 0.10), (0.5, 0.10), (1.2, 0.0), (3.9, 0.0), (4.4, 0.10)]
+    close_keys = [(0.0, 0.0), (1.2, 0.0), (1.5, 1.0), (3.9, 1.0), (4.1, 0.0)]
+    behind = _rel(0.0, 0.62, 0.425)
+    object_keys = [ObjectKey(t, frame, behind, ref=ref, on_floor=True) for t, frame, ref in (
+        (0.0, "world", 1.5), (1.5, "world", 1.5), (1.50001, "body", 0.0), (3.9, "body", 0.0),
+        (3.90001, "world", 3.9), (5.4, "world", 3.9))]
+    return Script("push_chair", 5.4, phases, "chair", ("left", "right"), pose_keys, pitch_keys, yaw_keys,
+                  walk_keys, reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "push"))
+
+
+def get_script(name: str) -> Script:
+    scripts = {"pick_place": pick_place, "lift_drink": lift_drink, "push_chair": push_chair}
+    if name not in scripts:
+        raise ValueError(f"unknown script {name!r}; choose one of {SCRIPT_NAMES}")
+    return scripts[name]()
+
+
+def contact_interval(script: Script) -> tuple[float, float]:
+    """Seconds during which the hands touch the object: start of the first
+    contact phase to the end of the last."""
+    return script.phases[script.contact[0]][0], script.phases[script.contact[1]][1]
+
+
+def prop_meshes(script: Script) -> list[tuple[str, trimesh.Trimesh, np.ndarray]]:
+    """Static scene meshes of the script (name, mesh, rel pose in the heading frame at time 0)."""
+    out = []
+    for name, kind, rel in script.props:
+        if kind == "table":
+            parts = []
+            top = trimesh.creation.box(extents=(0.8, 0.6, 0.04))
+            top.apply_translation((0, 0, 0.37 - 0.02))
+            parts.append(top)
+            for sx in (-1, 1):
+                for sy in (-1, 1):
+                    leg = trimesh.creation.box(extents=(0.05, 0.05, 0.70 - 0.001))
+                    leg.apply_translation((sx * 0.35, sy * 0.25, -0.37 + 0.35 - 0.0005))
+                    parts.append(leg)
+            out.append((name, trimesh.util.concatenate(parts), rel))
+    return out
+
+
+# ----------------------------------------------------------------------------- interpolation
+def smoothstep(s: np.ndarray) -> np.ndarray:
+    s = np.clip(s, 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s)
+
+
+def eased_segments(key_times: np.ndarray, times: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For each time, the index of the key before it and the eased weight of the next key."""
+    idx = np.clip(np.searchsorted(key_times, times, side="right") - 1, 0, len(key_times) - 1)
+    nxt = np.minimum(idx + 1, len(key_times) - 1)
+    span = np.maximum(key_times[nxt] - key_times[idx], 1e-9)
+    weight = np.where(nxt > idx, smoothstep((times - key_times[idx]) / span), 0.0)
+    return idx, weight
+
+
+def eased_scalar(keys: list, times: np.ndarray) -> np.ndarray:
+    """(T,) smoothstep-eased interpolation of (t, value) keys; constant outside."""
+    kt = np.array([k[0] for k in keys], float)
+    kv = np.array([k[1] for k in keys], float)
+    idx, w = eased_segments(kt, times)
+    return kv[idx] * (1 - w) + kv[np.minimum(idx + 1, len(kv) - 1)] * w
+
+
+def eased_rotations(key_times: np.ndarray, key_rotvecs: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """(T, J, 3) axis-angles slerped between (K, J, 3) keys with smoothstep easing."""
+    idx, w = eased_segments(key_times, times)
+    nxt = np.minimum(idx + 1, len(key_times) - 1)
+    K, J, _ = key_rotvecs.shape
+    out = np.zeros((len(times), J, 3))
+    for j in range(J):
+        qa = Rotation.from_rotvec(key_rotvecs[idx, j])
+        qb = Rotation.from_rotvec(key_rotvecs[nxt, j])
+        delta = (qa.inv() * qb).as_rotvec()  # shortest arc from a to b
+        out[:, j] = (qa * Rotation.from_rotvec(delta * w[:, None])).as_rotvec()
+    return out
+
+
+def interpolate_poses(T0: np.ndarray, T1: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(T, 4, 4) poses between (T, 4, 4) T0 and T1: lerp translation, slerp rotation."""
+    r0 = Rotation.from_matrix(T0[:, :3, :3])
+    r1 = Rotation.from_matrix(T1[:, :3, :3])
+    out = np.tile(np.eye(4), (len(w), 1, 1))
+    out[:, :3, :3] = (r0 * Rotation.from_rotvec((r0.inv() * r1).as_rotvec() * w[:, None])).as_matrix()
+    out[:, :3, 3] = T0[:, :3, 3] * (1 - w[:, None]) + T1[:, :3, 3] * w[:, None]
+    return out
+
+
+# ----------------------------------------------------------------------------- body timeline
+def posture_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray) -> np.ndarray:
+    """(T, Jb, 3) scripted posture from the pose keys."""
+    index = {n: i for i, n in enumerate(body_joint_names)}
+    keys = np.zeros((len(script.pose_keys), len(body_joint_names), 3))
+    for k, (_, pose) in enumerate(script.pose_keys):
+        for bone, rv in pose.items():
+            if bone not in index:
+                raise KeyError(f"script {script.name}: unknown bone {bone!r}")
+            keys[k, index[bone]] = rv
+    key_times = np.array([k[0] for k in script.pose_keys], float)
+    return eased_rotations(key_times, keys, times)
+
+
+def gait_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray, cadence_hz: float = 0.9):
+    """(T, Jb, 3) walk-cycle rotations to compose with the posture.
+
+    The gait phase advances with the signed intensity (backwards when negative),
+    the amplitude follows its magnitude: thighs swing +-0.38 rad, the knee flexes
+    in swing, the ankle lifts the toes, arms counter-swing, the pelvis rotates."""
+    intensity = eased_scalar(script.walk_keys, times)  # (T,)
+    fine = np.linspace(0.0, max(float(times.max()), 1e-3), 2000)  # integrate the phase finely, whatever the frame rate
+    phase_fine = 2 * np.pi * cadence_hz * np.concatenate(
+        [[0.0], np.cumsum(eased_scalar(script.walk_keys, fine)[1:] * np.diff(fine))])
+    phase = np.interp(times, fine, phase_fine)
+    amp = np.abs(intensity)
+    index = {n: i for i, n in enumerate(body_joint_names)}
+    out = np.zeros((len(times), len(body_joint_names), 3))
+    for side, sign in (("L", 1.0), ("R", -1.0)):
+        s = np.sin(phase) * sign  # > 0: this thigh is forward
+        c = np.cos(phase) * sign  # > 0: this leg swings forward (swing phase) when walking forward
+        swing = np.maximum(0.0, c)  # swing phase (forwards and backwards walking alike)
+        out[:, index[f"upperleg01.{side}"], 0] = -0.38 * amp * s
+        out[:, index[f"lowerleg01.{side}"], 0] = amp * (0.08 + 0.85 * swing**1.5)
+        out[:, index[f"foot.{side}"], 0] = -amp * 0.25 * swing
+        out[:, index[f"upperarm01.{side}"], 0] = 0.3 * amp * s
+        out[:, index[f"lowerarm01.{side}"], 0] = -0.15 * amp
+    out[:, index["spine04"], 2] = 0.06 * amp * np.sin(phase)
+    return out
+
+
+def compose_rotvecs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-element rotation a then b (R_a @ R_b) as axis-angles, (..., 3)."""
+    shape = a.shape
+    r = Rotation.from_rotvec(a.reshape(-1, 3)) * Rotation.from_rotvec(b.reshape(-1, 3))
+    return r.as_rotvec().reshape(shape)
+
+
+def heading_frames(yaw: np.ndarray, root_xy: np.ndarray, heading0: float) -> np.ndarray:
+    """(T, 4, 4) person heading frames: x right, y forward, z up, origin under the root on the floor."""
+    psi = heading0 + yaw
+    out = np.tile(np.eye(4), (len(yaw), 1, 1))
+    out[:, :3, :3] = Rotation.from_euler("z", (psi - np.pi / 2)[:, None]).as_matrix()
+    out[:, :2, 3] = root_xy
+    return out
+
+
+def model_to_heading(model) -> np.ndarray:
+    """(3, 3) rotation from model coordinates to the heading frame (right, forward, up)."""
+    fwd = np.asarray(model.forward_axis, float)
+    up = np.asarray(model.up_axis, float)
+    return np.stack([np.cross(fwd, up), fwd, up])
+
+
+def body_orientation(model, heading: np.ndarray, pitch: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) global body rotation: heading frame, then a forward pitch of the pelvis."""
+    up = np.asarray(model.up_axis, float)
+    fwd = np.asarray(model.forward_axis, float)
+    axis = np.cross(up, fwd)
+    R_pitch = Rotation.from_rotvec(pitch[:, None] * axis[None]).as_matrix()  # (T, 3, 3)
+    return heading[:, :3, :3] @ model_to_heading(model)[None] @ R_pitch
+
+
+def stance_anchored_root(feet_l: np.ndarray, feet_r: np.ndarray) -> np.ndarray:
+    """(T, 2) root xy that keeps the supporting foot still.
+
+    feet_l/r (T, 3): sole centres relative to the root, in world orientation.
+    The lower foot carries the weight (soft switch over ~1 cm); the root moves
+    opposite to that foot's motion relative to the root."""
+    w_l = 1.0 / (1.0 + np.exp(np.clip((feet_l[:, 2] - feet_r[:, 2]) / 0.004, -50, 50)))  # (T,)
+    d_l = np.diff(feet_l[:, :2], axis=0)
+    d_r = np.diff(feet_r[:, :2], axis=0)
+    w = 0.5 * (w_l[1:] + w_l[:-1])[:, None]
+    step = -(w * d_l + (1 - w) * d_r)
+    return np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
+
+
+def object_track(script: Script, frames: dict, times: np.ndarray, scale: float = 1.0,
+                 half_height: float | None = None) -> np.ndarray:
+    """(T, 4, 4) object -> world poses from the script's object keys.
+
+    frames: 'body' -> (T, 4, 4) heading frames, 'head' -> (T, 4, 4) the same
+    axes with the origin at the nose. Carried poses (frame 'body') are scaled
+    with the person's stature (`scale` = stature / 1.625 m, anny's neutral adult)."""
+    keys = script.object_keys
+    key_times = np.array([k.t for k in keys])
+    heading = frames["body"]
+
+    def anchor(key: ObjectKey) -> np.ndarray:  # (T, 4, 4) world pose of one key at every frame
+        rel = key.rel.copy()
+        if key.on_floor and half_height is not None:
+            rel[2, 3] = half_height
+        if key.frame == "body":
+            rel[:3, 3] *= scale
+            return heading @ rel
+        if key.frame == "head":
+            return frames["head"] @ rel
+        if key.frame != "world":
+            raise ValueError(f"script {script.name}: unknown object key frame {key.frame!r}")
+        ref = int(np.argmin(np.abs(times - key.ref)))
+        return np.broadcast_to(heading[ref] @ rel, (len(times), 4, 4)).copy()
+
+    anchors = [anchor(k) for k in keys]
+    idx, w = eased_segments(key_times, times)
+    out = np.empty((len(times), 4, 4))
+    for k in range(len(keys)):
+        sel = idx == k
+        if not sel.any():
+            continue
+        nxt = min(k + 1, len(keys) - 1)
+        out[sel] = interpolate_poses(anchors[k][sel], anchors[nxt][sel], w[sel])
+    return out
+
+
+# ----------------------------------------------------------------------------- hands
+@dataclass
+class HandGeometry:
+    """Vertex ids of one hand (rest mesh): a palm-skin patch, the palm and back
+    (skinned to wrist/metacarpals) and the five fingers (thumb .. little)."""
+
+    palm_patch: torch.Tensor
+    hand: torch.Tensor
+    fingers: list
+
+    @property
+    def whole(self) -> torch.Tensor:
+        return torch.cat([self.hand] + list(self.fingers))
+
+
+def dominant_bones(model) -> np.ndarray:
+    """(V,) index into model.joint_names of the bone with the largest skinning weight (anny core)."""
+    core = model.core
+    ids = core.vertex_bone_indices.long().cpu().numpy()
+    w = core.vertex_bone_weights.float().cpu().numpy()
+    return ids[np.arange(len(ids)), w.argmax(1)]
+
+
+def hand_geometry(model, rest_vertices: np.ndarray, rest_keypoints: np.ndarray, radius: float = 0.03) -> dict:
+    """Per side ('L', 'R') the HandGeometry of the rest mesh."""
+    dominant = dominant_bones(model)
+    names = np.array(model.joint_names)[dominant]
+    out = {}
+    for side, region in (("L", "left_hand"), ("R", "right_hand")):
+        o = HAND_OFFSET[side]
+        wrist, index1, little1 = rest_keypoints[o], rest_keypoints[o + 5], rest_keypoints[o + 17]
+        centre = wrist + 0.55 * ((index1 + little1) / 2 - wrist)
+        ids = model.contact_regions[region].cpu().numpy()
+        patch = ids[np.linalg.norm(rest_vertices[ids] - centre, axis=1) < radius]
+        hand = np.flatnonzero((names == f"wrist.{side}") | np.char.startswith(names, "metacarpal") & np.char.endswith(names, f".{side}"))
+        fingers = [np.flatnonzero(np.char.startswith(names, prefix + "-") & np.char.endswith(names, f".{side}"))
+                   for prefix in FINGER_BONE_PREFIX]
+        # the wrist bone also skins the forearm's end: keep what lies beyond the wrist joint
+        along = (rest_vertices[hand] - wrist) @ ((index1 + little1) / 2 - wrist)
+        hand = hand[along > 0]
+        out[side] = HandGeometry(torch.as_tensor(patch), torch.as_tensor(hand), [torch.as_tensor(f) for f in fingers])
+    return out
+
+
+def palm_frames(keypoints: torch.Tensor, vertices: torch.Tensor, geom: HandGeometry, side: str):
+    """Palm centre (B, 3), outward palm normal (B, 3), finger direction (B, 3) of one hand.
+
+    The centre is the mean of a patch of palm-skin vertices; the directions come
+    from the wrist and the index and little knuckles (rigid with the palm)."""
+    o = HAND_OFFSET[side]
+    wrist, index1, little1 = keypoints[:, o], keypoints[:, o + 5], keypoints[:, o + 17]
+    d = (index1 + little1) / 2 - wrist
+    lateral = index1 - little1
+    n = torch.linalg.cross(lateral, d) if side == "R" else torch.linalg.cross(d, lateral)
+    n = n / n.norm(dim=-1, keepdim=True)
+    d = d / d.norm(dim=-1, keepdim=True)
+    centre = vertices[:, geom.palm_patch].mean(1)
+    return centre, n, d
+
+
+def grasp_targets(script: Script, spec: ObjectSpec, obj_poses: np.ndarray, gap: np.ndarray) -> dict:
+    """Per hand side: target palm centre (T, 3), palm normal (T, 3), finger direction (T, 3), world.
+
+    The palm centre sits `gap` metres (plus 2 mm of skin clearance) out along
+    the surface normal; the palm faces the surface."""
+    out = {}
+    for hand in script.hands:
+        g = spec.grasps[hand]
+        R, t = obj_poses[:, :3, :3], obj_poses[:, :3, 3]
+        normal = R @ np.asarray(g.normal, float)
+        point = (R @ np.asarray(g.point, float)) + t + normal * (0.002 + gap[:, None])
+        fdir = np.asarray(g.finger_dir, float)
+        out[SIDES[hand]] = (point, -normal, R @ (fdir / np.linalg.norm(fdir)))
+    return out
+
+
+def to_object_frame(points: torch.Tensor, poses: torch.Tensor) -> torch.Tensor:
+    """World points (B, N, 3) -> object coordinates with object->world poses (B, 4, 4)."""
+    return (points - poses[:, None, :3, 3]) @ poses[:, :3, :3]
+
+
+def penetration(sdf, points_obj: torch.Tensor, margin: float) -> torch.Tensor:
+    """(B,) sum over points of how far each is inside the surface grown by `margin`, squared."""
+    return (torch.relu(margin - sdf(points_obj)) ** 2).sum(-1)
+
+
+def below_floor(points: torch.Tensor, margin: float = 0.003) -> torch.Tensor:
+    """(B,) sum of squared depths of points (B, N, 3) below the floor z = margin, over (2 mm)^2."""
+    return (torch.relu(margin - points[..., 2]) ** 2).sum(-1) / 0.002**2
+
+
+def run_lbfgs(variables: list, loss_fn, iters: int) -> None:
+    opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=iters, history_size=50, line_search_fn="strong_wolfe",
+                            tolerance_change=1e-10, tolerance_grad=1e-9)
+
+    def closure():
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        return loss
+
+    opt.step(closure)
+
+
+def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, sdf, obj_poses: np.ndarray,
+                 iters: int = 40, prior_pose: torch.Tensor | None = None, retries: int = 2) -> torch.Tensor:
+    """Bend spine and arms so the palms meet their targets, at frames where `weight` > 0.
+
+    Minimises, per frame, with L-BFGS:
+      w * sum_hands [ |c - c*|^2 / (1 cm)^2 + 10 (1 - n.n*) + 10 (1 - d.d*)
+                      + |palm and back of hand inside the object|^2 / (2 mm)^2 ]
+      + sum_bones lambda_b |theta_b - theta_b^script|^2
+    theta^script is `prior_pose` (T, Jb, 3) when given, else params.body_pose (the start).
+    One L-BFGS over all frames can leave a few frames behind (a shared line
+    search): frames whose palm is still > 4 mm off are solved again on their own
+    (`retries` times). Returns the updated body_pose (T, Jb, 3)."""
+    frames = np.flatnonzero(weight > 1e-3)
+    body_pose = params.body_pose.detach().clone()
+    if len(frames) == 0:
+        return body_pose
+    sub = params[torch.as_tensor(frames)].detach()
+    bones = [b for b in IK_BONES if b in model.body_joint_names]
+    ids = torch.tensor([model.body_joint_names.index(b) for b in bones])
+    dtype = sub.body_pose.dtype
+    lam = torch.tensor([IK_BONES[b] for b in bones], dtype=dtype)
+    var = sub.body_pose[:, ids].clone().requires_grad_(True)
+    prior = params.body_pose if prior_pose is None else prior_pose
+    base = prior[torch.as_tensor(frames)][:, ids].detach().clone()
+    w = torch.as_tensor(weight[frames], dtype=dtype)
+    poses = torch.as_tensor(obj_poses[frames], dtype=dtype)
+    tgt = {s: [torch.as_tensor(a[frames], dtype=dtype) for a in v] for s, v in targets.items()}
+    fixed_pose = sub.body_pose.detach()
+
+    def loss_fn():
+        out = model(dataclasses.replace(sub, body_pose=fixed_pose.index_copy(1, ids, var)))
+        loss = (lam[None, :, None] * (var - base) ** 2).sum()
+        for side, (c_t, n_t, d_t) in tgt.items():
+            c, n, d = palm_frames(out.keypoints, out.vertices, geom[side], side)
+            err = ((c - c_t) ** 2).sum(-1) / 0.01**2 + 10 * (1 - (n * n_t).sum(-1)) + 10 * (1 - (d * d_t).sum(-1))
+            hand = out.vertices[:, geom[side].hand]
+            inside = penetration(sdf, to_object_frame(hand, poses), 0.0) / 0.002**2
+            inside = inside + below_floor(out.vertices[:, geom[side].whole])
+            loss = loss + (w * (err + inside)).sum()
+        return loss
+
+    run_lbfgs([var], loss_fn, iters)
+    body_pose[torch.as_tensor(frames)[:, None], ids[None]] = var.detach()
+    if retries <= 0:
+        return body_pose
+    with torch.no_grad():
+        out = model(dataclasses.replace(sub, body_pose=fixed_pose.index_copy(1, ids, var)))
+        error = torch.zeros(len(frames), dtype=dtype)
+        for side, (c_t, _, _) in tgt.items():
+            c, _, _ = palm_frames(out.keypoints, out.vertices, geom[side], side)
+            error = torch.maximum(error, (c - c_t).norm(dim=-1))
+    bad = frames[((error > 0.004) & (w > 0.5)).numpy()]
+    if len(bad) == 0:
+        return body_pose
+    again = np.zeros_like(weight)
+    again[bad] = weight[bad]
+    return solve_arm_ik(model, dataclasses.replace(params, body_pose=body_pose), targets, again, geom, sdf, obj_poses,
+                        iters=iters, prior_pose=prior if prior_pose is None else prior_pose, retries=retries - 1)
+
+
+def finger_bone_ids(model, finger: int) -> list[int]:
+    """Hand-pose indices of one finger's three phalanges (0 thumb .. 4 little)."""
+    prefix = FINGER_BONE_PREFIX[finger]
+    return [i for i, n in enumerate(model.hand_joint_names) if n.startswith(prefix + "-")]
+
+
+def finger_pose(model, side: str, curls: torch.Tensor, thumb: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, Jh, 3) hand pose curling each finger by its own amount.
+
+    curls (B, 5) radians per joint (thumb scaled by 0.6); thumb (B, 3) an extra
+    rotation of the thumb's first bone (composed by adding axis-angles: small)."""
+    axes = getattr(model, f"finger_flex_axes_{side}")  # (Jh, 3)
+    scale = torch.zeros(len(model.hand_joint_names), 5, dtype=axes.dtype)
+    for f in range(5):
+        for j in finger_bone_ids(model, f):
+            scale[j, f] = 0.6 if f == 0 else 1.0
+    pose = (curls.to(axes.dtype) @ scale.T)[..., None] * axes[None]  # (B, Jh, 3)
+    if thumb is not None:
+        first = finger_bone_ids(model, 0)[0]
+        pose = pose.index_add(1, torch.tensor([first]), thumb[:, None].to(axes.dtype))
+    return pose
+
+
+def solve_finger_grasp(model, params, frames: np.ndarray, geom: dict, sides: list, sdf, obj_poses: np.ndarray,
+                       relaxed: float, iters: int = 40, init: dict | None = None) -> dict:
+    """Close the fingers onto the object at `frames` (contact frames).
+
+    Per side, variables: a curl per finger (F, 5) and a thumb-base rotation (F, 3).
+    Minimises  |hand inside the object|^2 / (2 mm)^2 + sum_fingers (gap of the
+    finger's closest point)^2 / (4 mm)^2 + small priors, + temporal smoothness.
+    Returns side -> (curls (F, 5), thumb (F, 3)) tensors."""
+    sub = params[torch.as_tensor(frames)].detach()
+    dtype = sub.body_pose.dtype
+    poses = torch.as_tensor(obj_poses[frames], dtype=dtype)
+    F_ = len(frames)
+    if init is None:
+        init = {s: (torch.full((F_, 5), relaxed, dtype=dtype), torch.zeros(F_, 3, dtype=dtype)) for s in sides}
+    curls = {s: init[s][0].clone().to(dtype).requires_grad_(True) for s in sides}
+    thumbs = {s: init[s][1].clone().to(dtype).requires_grad_(True) for s in sides}
+
+    def loss_fn():
+        hands = {s: finger_pose(model, s, curls[s], thumbs[s]) for s in sides}
+        out = model(dataclasses.replace(sub, left_hand_pose=hands.get("L", sub.left_hand_pose),
+                                        right_hand_pose=hands.get("R", sub.right_hand_pose)))
+        loss = 0.0
+        for s in sides:
+            g = geom[s]
+            loss = loss + penetration(sdf, to_object_frame(out.vertices[:, g.hand], poses), 0.001).sum() / 0.002**2
+            loss = loss + below_floor(out.vertices[:, g.whole]).sum()
+            for f, ids in enumerate(g.fingers):
+                d = sdf(to_object_frame(out.vertices[:, ids], poses))  # (F, n)
+                loss = loss + (torch.relu(0.001 - d) ** 2).sum() / 0.002**2
+                loss = loss + (torch.relu(d.min(1).values - 0.002) ** 2).sum() / 0.004**2
+            c = curls[s]
+            loss = loss + 0.5 * ((c - relaxed) ** 2).sum() + 2.0 * (thumbs[s] ** 2).sum()
+            loss = loss + 10.0 * (torch.relu(c - 1.6) ** 2 + torch.relu(-0.3 - c) ** 2).sum()
+            if F_ > 1:
+                loss = loss + 20.0 * ((c[1:] - c[:-1]) ** 2).sum() + 20.0 * ((thumbs[s][1:] - thumbs[s][:-1]) ** 2).sum()
+        return loss
+
+    run_lbfgs(list(curls.values()) + list(thumbs.values()), loss_fn, iters)
+    return {s: (curls[s].detach(), thumbs[s].detach()) for s in sides}
+
+
+def coarse_subset(frames: np.ndarray, times: np.ndarray, rate_hz: float) -> np.ndarray:
+    """A subset of `frames` at most ~1/rate_hz seconds apart, keeping the first and last."""
+    if len(frames) == 0:
+        return frames
+    keep, last = [frames[0]], times[frames[0]]
+    for f in frames[1:-1]:
+        if times[f] - last >= 1.0 / rate_hz - 1e-9:
+            keep.append(f)
+            last = times[f]
+    if frames[-1] != keep[-1]:
+        keep.append(frames[-1])
+    return np.array(keep)
+
+
+def interpolate_corrections(base: torch.Tensor, solved: torch.Tensor, solved_frames: np.ndarray) -> torch.Tensor:
+    """Spread per-bone rotation corrections solved at some frames over all frames.
+
+    base (T, J, 3) scripted axis-angles; solved (S, J, 3) at `solved_frames`.
+    The correction R_base^-1 R_solved is slerped between solved frames and held
+    constant outside them; returns base composed with it, (T, J, 3)."""
+    T, J, _ = base.shape
+    b = Rotation.from_rotvec(base.double().numpy().reshape(-1, 3))
+    b_s = Rotation.from_rotvec(base[solved_frames].double().numpy().reshape(-1, 3))
+    corr = (b_s.inv() * Rotation.from_rotvec(solved.double().numpy().reshape(-1, 3))).as_rotvec().reshape(len(solved_frames), J, 3)
+    frames = np.arange(T)
+    if len(solved_frames) == 1:
+        spread = np.broadcast_to(corr, (T, J, 3))
+    else:
+        spread = np.empty((T, J, 3))
+        for j in range(J):
+            slerp = Slerp(solved_frames.astype(float), Rotation.from_rotvec(corr[:, j]))
+            spread[:, j] = slerp(np.clip(frames, solved_frames[0], solved_frames[-1]).astype(float)).as_rotvec()
+    out = (b * Rotation.from_rotvec(spread.reshape(-1, 3))).as_rotvec().reshape(T, J, 3)
+    return torch.as_tensor(out, dtype=base.dtype)
+
+
+def coarse_to_fine_ik(model, params, targets, weight, geom, sdf, obj_poses, times, rate_hz, iters, polish_iters):
+    """Arm IK solved at <= rate_hz, spread to all frames, then polished at every frame."""
+    active = np.flatnonzero(weight > 1e-3)
+    coarse = coarse_subset(active, times, rate_hz)
+    if len(coarse) == len(active):
+        return solve_arm_ik(model, params, targets, weight, geom, sdf, obj_poses, iters=iters)
+    mask = np.zeros(len(times), bool)
+    mask[coarse] = True
+    solved = solve_arm_ik(model, params, targets, np.where(mask, weight, 0.0), geom, sdf, obj_poses, iters=iters)
+    # anchor the spread at the frames just outside the active range (no correction there)
+    anchors = np.unique(np.concatenate([coarse, np.clip([active[0] - 1, active[-1] + 1], 0, len(times) - 1)]))
+    start = interpolate_corrections(params.body_pose.detach(), solved[anchors], anchors)
+    warm = dataclasses.replace(params, body_pose=start)
+    return solve_arm_ik(model, warm, targets, weight, geom, sdf, obj_poses, iters=polish_iters,
+                        prior_pose=params.body_pose)
+
+
+def coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, times, relaxed, rate_hz, iters,
+                        polish_iters) -> dict:
+    """Finger grip solved at <= rate_hz among the contact frames, interpolated, then polished."""
+    coarse = coarse_subset(frames, times, rate_hz)
+    grip = solve_finger_grasp(model, params, coarse, geom, sides, sdf, obj_poses, relaxed, iters=iters)
+    if len(coarse) == len(frames):
+        return grip
+    if polish_iters <= 0:
+        out = {}
+        for s in sides:
+            c, t = (g.numpy() for g in grip[s])
+            ci = np.stack([np.interp(frames, coarse, c[:, k]) for k in range(5)], 1)
+            ti = np.stack([np.interp(frames, coarse, t[:, k]) for k in range(3)], 1)
+            out[s] = (torch.as_tensor(ci, dtype=grip[s][0].dtype), torch.as_tensor(ti, dtype=grip[s][0].dtype))
+        return out
+    init = {}
+    for s in sides:
+        c, t = (g.numpy() for g in grip[s])
+        ci = np.stack([np.interp(frames, coarse, c[:, k]) for k in range(5)], 1)
+        ti = np.stack([np.interp(frames, coarse, t[:, k]) for k in range(3)], 1)
+        init[s] = (torch.as_tensor(ci), torch.as_tensor(ti))
+    return solve_finger_grasp(model, params, frames, geom, sides, sdf, obj_poses, relaxed, iters=polish_iters,
+                              init=init)
+
+
+# ----------------------------------------------------------------------------- all together
+@dataclass
+class Animation:
+    """What `animate` produces; world frame, metres, T frames."""
+
+    params: object  # BodyParams (T, ...)
+    vertices: np.ndarray  # (T, V, 3) float32
+    keypoints: np.ndarray  # (T, 67, 3) float32
+    object_poses: np.ndarray  # (T, 4, 4) object -> world
+    contact: np.ndarray  # (T,) bool
+    props: list  # (name, mesh, 4x4 world pose) static scene meshes
+    phases: dict  # phase -> (first frame, last frame)
+    hand_gap: dict  # measured hand-to-object distances in contact frames
+    hand_distance: np.ndarray = None  # (T,) closest grasping-hand vertex to the object surface, metres
+    timings: dict = field(default_factory=dict)  # seconds per stage
+
+
+def hand_object_gap(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj_poses: np.ndarray, contact: np.ndarray,
+                    hands: tuple) -> dict:
+    """Per grasping hand over contact frames, metres: the gap between the palm
+    patch and the surface (closest palm vertex, 0 when touching), and the
+    deepest point of the whole hand (palm and fingers) inside the object."""
+    out = {}
+    frames = np.flatnonzero(contact)
+    if not frames.size:
+        return out
+    sdf = SurfaceDistance(spec.mesh)
+    for hand in hands:
+        g = geom[SIDES[hand]]
+        whole = g.whole.numpy()
+        gaps, pens = [], []
+        for f in frames:
+            R, t = obj_poses[f, :3, :3], obj_poses[f, :3, 3]
+            gaps.append(max(0.0, sdf((vertices[f, g.palm_patch.numpy()] - t) @ R).min()))
+            pens.append(max(0.0, -sdf((vertices[f, whole] - t) @ R).min()))
+        out[hand] = {"palm_gap_mean_m": float(np.mean(gaps)), "palm_gap_max_m": float(np.max(gaps)),
+                     "penetration_max_m": float(np.max(pens)), "penetration_mean_m": float(np.mean(pens))}
+    return out
+
+
+def scripted_pose(model, script: Script, times: np.ndarray, shape: torch.Tensor, relaxed_curl: float):
+    """BodyParams (T, ...) of the scripted posture and gait, identity orientation, zero translation."""
+    params = model.init_params(len(times))
+    params.shape[:] = shape
+    names = model.body_joint_names
+    pose = compose_rotvecs(posture_rotvecs(script, names, times), gait_rotvecs(script, names, times))
+    params.body_pose = torch.as_tensor(pose, dtype=params.body_pose.dtype)
+    for side in ("L", "R"):
+        model.curl_fingers(params, side, relaxed_curl)
+    return params
+
+
+def root_path(model, script: Script, times: np.ndarray, shape: torch.Tensor, heading0: float, relaxed_curl: float,
+              rate_hz: float = 30.0) -> np.ndarray:
+    """(T, 2) root xy at `times`, integrated from the stance foot on a fine time grid
+    (>= rate_hz, so coarse frame rates still walk like the real thing)."""
+    end = float(times.max())
+    fine = np.union1d(np.linspace(0.0, end, max(2, int(np.ceil(end * rate_hz)) + 1)), times)
+    with torch.no_grad():
+        v_model = model(scripted_pose(model, script, fine, shape, relaxed_curl)).vertices.numpy()
+    yaw = eased_scalar(script.yaw_keys, fine)
+    pitch = eased_scalar(script.pitch_keys, fine)
+    R = body_orientation(model, heading_frames(yaw, np.zeros((len(fine), 2)), heading0), pitch)  # (F, 3, 3)
+    feet = {}
+    for side in ("left", "right"):
+        ids = model.contact_regions[f"{side}_foot"].cpu().numpy()
+        feet[side] = np.einsum("tij,tj->ti", R, v_model[:, ids].mean(1))
+    xy = stance_anchored_root(feet["left"], feet["right"])
+    return np.stack([np.interp(times, fine, xy[:, k]) for k in range(2)], 1)
+
+
+def hand_object_distance(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj_poses: np.ndarray,
+                         hands: tuple) -> np.ndarray:
+    """(T,) per frame, the smallest signed distance (m, < 0 inside) from the
+    grasping hands' vertices to the object surface: a contact check by geometry."""
+    sdf = SurfaceDistance(spec.mesh)
+    ids = np.concatenate([geom[SIDES[h]].whole.numpy() for h in hands])
+    local = np.einsum("tvj,tjk->tvk", vertices[:, ids] - obj_poses[:, None, :3, 3], obj_poses[:, :3, :3])
+    return sdf(local.reshape(-1, 3)).reshape(len(vertices), -1).min(1)
+
+
+def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotype, heading0: float = 0.0,
+            ik_iters: int = 100, polish_iters: int = 20, solve_rate_hz: float = 5.0, finger_iters: int = 60,
+            grip_rate_hz: float = 3.0, relaxed_curl: float = 0.25) -> Animation:
+    """Run the script on the body model at `times` (seconds of script time).
+
+    The arm IK is solved at <= `solve_rate_hz` with `ik_iters` L-BFGS
+    iterations, then polished at every frame (`polish_iters`); the finger grip
+    (nearly constant while the hand holds the object) at <= `grip_rate_hz`,
+    interpolated in between."""
+    missing = [h for h in script.hands if h not in spec.grasps]
+    if missing:
+        raise ValueError(f"script {script.name} holds the object with the {' and '.join(script.hands)} hand(s), "
+                         f"but object {spec.name!r} has no grasp for the {' and '.join(missing)} hand")
+    clock = {"start": time.perf_counter()}
+    T = len(times)
+    shape = torch.as_tensor(phenotype, dtype=model.dtype)[None]
+    params = scripted_pose(model, script, times, shape, relaxed_curl)
+
+    rest_params = model.init_params(1)
+    rest_params.shape[:] = params.shape[:1]
+    with torch.no_grad():
+        rest = model(rest_params)
+    rest_v, rest_k = rest.vertices[0].numpy(), rest.keypoints[0].numpy()
+    geom = hand_geometry(model, rest_v, rest_k)
+
+    # 1-2: body placement: heading, pitch, stance-anchored root, feet on the floor.
+    yaw = eased_scalar(script.yaw_keys, times)
+    pitch = eased_scalar(script.pitch_keys, times)
+    with torch.no_grad():
+        local = model(params)  # identity orientation, zero translation: model coordinates
+    v_model = local.vertices.numpy()
+    root_xy = root_path(model, script, times, params.shape[:1], heading0, relaxed_curl)
+    heading = heading_frames(yaw, root_xy, heading0)
+    R = body_orientation(model, heading, pitch)
+    lowest = np.einsum("tij,tvj->tv", R[:, 2:3], v_model).min(1)  # (T,) height of the lowest vertex
+    transl = np.concatenate([root_xy, -lowest[:, None]], axis=1)
+    params.global_orient = torch.as_tensor(Rotation.from_matrix(R).as_rotvec(), dtype=params.transl.dtype)
+    params.transl = torch.as_tensor(transl, dtype=params.transl.dtype)
+
+    # 3: object track; 4: arms to the grasp points.
+    stature = float(np.ptp(rest_v @ np.asarray(model.up_axis, float)))
+    head = heading.copy()
+    head[:, :3, 3] = np.einsum("tij,tj->ti", R, local.keypoints[:, 0].numpy()) + transl  # the nose, scripted pose
+    obj_poses = object_track(script, {"body": heading, "head": head}, times, scale=stature / 1.625,
+                             half_height=spec.half_height)
+    sdf = SdfGrid(spec.mesh)
+    reach = eased_scalar(script.reach_keys, times)
+    gap = eased_scalar(script.gap_keys, times)
+    targets = grasp_targets(script, spec, obj_poses, gap)
+    clock["placement"] = time.perf_counter()
+    params.body_pose = coarse_to_fine_ik(model, params, targets, reach, geom, sdf, obj_poses, times, solve_rate_hz,
+                                         ik_iters, polish_iters)
+
+    clock["arm_ik"] = time.perf_counter()
+    # 5: fingers close onto the object during contact, open (relaxed) otherwise.
+    c0, c1 = contact_interval(script)
+    contact = (times >= c0) & (times < c1)
+    closure = eased_scalar(script.close_keys, times)
+    sides = [SIDES[h] for h in script.hands]
+    frames = np.flatnonzero(contact)
+    if frames.size:
+        grip = coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, times, relaxed_curl,
+                                   grip_rate_hz, finger_iters, polish_iters)
+        dtype = params.transl.dtype
+        k_reach = torch.as_tensor(reach, dtype=dtype)[:, None]
+        k_close = torch.as_tensor(closure, dtype=dtype)[:, None]
+        first, last = frames[0], frames[-1]
+        for s in sides:
+            # the grip shape per frame: solved in contact, held before and after
+            curls = torch.empty(T, 5, dtype=dtype)
+            thumb = torch.empty(T, 3, dtype=dtype)
+            curls[torch.as_tensor(frames)], thumb[torch.as_tensor(frames)] = grip[s]
+            curls[:first], thumb[:first] = grip[s][0][0], grip[s][1][0]
+            curls[last + 1:], thumb[last + 1:] = grip[s][0][-1], grip[s][1][-1]
+            # relaxed -> open (fingers stretched, as the hand nears) -> grip (as it closes)
+            opened = torch.clamp(curls.min(0).values, max=0.0) - 0.1  # (5,)
+            shape = relaxed_curl + k_reach * (opened - relaxed_curl) + k_close * (curls - opened)
+            hand = finger_pose(model, s, shape, k_reach * thumb)
+            if s == "L":
+                params.left_hand_pose = hand
+            else:
+                params.right_hand_pose = hand
+
+    clock["fingers"] = time.perf_counter()
+    with torch.no_grad():
+        out = model(params)
+    vertices = out.vertices.numpy().astype(np.float32)
+    keypoints = out.keypoints.numpy().astype(np.float32)
+    props = [(name, mesh, heading[0] @ rel) for name, mesh, rel in prop_meshes(script)]
+    phase_frames = {}
+    for name, (a, b) in script.phases.items():
+        sel = np.flatnonzero((times >= a) & (times < b))
+        if sel.size:
+            phase_frames[name] = (int(sel[0]), int(sel[-1]))
+    gaps = hand_object_gap(vertices, geom, spec, obj_poses, contact, script.hands)
+    distance = hand_object_distance(vertices, geom, spec, obj_poses, script.hands)
+    clock["end"] = time.perf_counter()
+    names = list(clock)
+    timings = {b: clock[b] - clock[a] for a, b in zip(names[:-1], names[1:])}
+    return Animation(params.detach(), vertices, keypoints, obj_poses, contact, props, phase_frames, gaps, distance,
+                     timings)

@@ -1,0 +1,126 @@
+"""Body model layer: shapes, keypoint layout, hands, world transform, regions."""
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from intercap.body_models import NUM_BODY_HANDS, BodyParams, axis_angle_to_matrix, load_body_model
+from intercap.body_models.keypoints import BODY_25, LEFT_HAND, RIGHT_HAND
+
+
+@pytest.fixture(scope="module")
+def anny_model():
+    return load_body_model("anny")
+
+
+def test_output_shapes_and_keypoint_count(anny_model):
+    params = anny_model.init_params(3)
+    out = anny_model(params)
+    V = anny_model.num_vertices
+    assert V == 13718
+    assert out.vertices.shape == (3, V, 3)
+    assert out.joints.shape == (3, len(anny_model.joint_names), 3)
+    assert out.keypoints.shape == (3, NUM_BODY_HANDS, 3) == (3, 67, 3)
+    assert anny_model.faces.shape[1] == 3 and int(anny_model.faces.max()) == V - 1
+    assert torch.isfinite(out.vertices).all() and torch.isfinite(out.keypoints).all()
+
+
+def test_keypoints_are_anatomically_placed(anny_model):
+    kp = anny_model(anny_model.init_params(1)).keypoints[0]
+    name = {n: i for i, n in enumerate(BODY_25)}
+    z = kp[:, 2]
+    assert z[name["nose"]] > z[name["neck"]] > z[name["mid_hip"]] > z[name["left_knee"]] > z[name["left_ankle"]]
+    # anny faces -y with the person's left on +x.
+    assert kp[name["left_shoulder"], 0] > 0.1 and kp[name["right_shoulder"], 0] < -0.1
+    assert kp[name["nose"], 1] < kp[name["neck"], 1]
+    # Hand keypoint 0 is the body wrist; fingertips lie beyond their knuckles from the wrist.
+    assert torch.allclose(kp[LEFT_HAND][0], kp[name["left_wrist"]])
+    for hand in (kp[LEFT_HAND], kp[RIGHT_HAND]):
+        wrist = hand[0]
+        for finger in range(5):
+            base, tip = hand[1 + 4 * finger], hand[4 + 4 * finger]
+            assert (tip - wrist).norm() > (base - wrist).norm()
+
+
+def test_hand_keypoints_follow_finger_pose(anny_model):
+    params = anny_model.init_params(2)
+    anny_model.curl_fingers(params[1], "L", 1.0)  # indexing returns views: curl frame 1 in place
+    out = anny_model(params)
+    moved = (out.keypoints[1] - out.keypoints[0]).norm(dim=-1)
+    left_tips = moved[LEFT_HAND][[4, 8, 12, 16, 20]]
+    assert (left_tips > 0.02).all(), left_tips
+    assert moved[RIGHT_HAND].max() < 1e-6
+    assert moved[:25].max() < 1e-6
+    # Curling moves fingertips towards the palm side, closing the hand.
+    hand_open, hand_closed = out.keypoints[0][LEFT_HAND], out.keypoints[1][LEFT_HAND]
+    spread = lambda h: (h[[8, 12, 16, 20]] - h[0]).norm(dim=-1).mean()
+    assert spread(hand_closed) < spread(hand_open) - 0.02
+
+
+def test_world_transform(anny_model):
+    params = anny_model.init_params(1)
+    base = anny_model(params)
+    moved = params.clone()
+    moved.transl[:] = torch.tensor([0.1, -0.2, 0.3])
+    moved.global_orient[:] = torch.tensor([0.0, 0.0, np.pi / 2])
+    out = anny_model(moved)
+    R = axis_angle_to_matrix(moved.global_orient)[0]
+    expected = base.vertices[0] @ R.T + moved.transl[0]
+    assert torch.allclose(out.vertices[0], expected, atol=1e-5)
+
+
+def test_shape_changes_body_and_params_round_trip(anny_model):
+    params = anny_model.init_params(2)
+    params.shape[1, 4] = 1.0  # height
+    out = anny_model(params)
+    height = out.vertices[..., 2].amax(1) - out.vertices[..., 2].amin(1)
+    assert height[1] > height[0] + 0.05
+    again = BodyParams.from_numpy_dict(params.to_numpy_dict())
+    for a, b in zip(again.tensors().values(), params.tensors().values()):
+        assert torch.equal(a, b)
+    with pytest.raises(KeyError, match="expression"):
+        BodyParams.from_numpy_dict({k: v for k, v in params.to_numpy_dict().items() if k != "expression"})
+
+
+def test_contact_regions_are_where_contact_happens(anny_model):
+    regions = anny_model.contact_regions
+    assert set(regions) >= {"left_hand", "right_hand", "left_foot", "right_foot", "buttocks", "left_forearm", "right_forearm"}
+    verts = anny_model(anny_model.init_params(1)).vertices[0]
+    z = verts[:, 2]
+    for name in ("left_foot", "right_foot"):
+        sole = z[regions[name]]
+        assert len(sole) > 50 and sole.mean() < z.min() + 0.05  # soles are the lowest surface
+    assert verts[regions["left_hand"], 0].mean() > 0.35 and verts[regions["right_hand"], 0].mean() < -0.35
+    # The palm region is on the side the fingers curl to: curling brings fingertips close to it.
+    params = anny_model.init_params(1)
+    anny_model.curl_fingers(params, "R", 1.3)
+    closed = anny_model(params)
+    tips = closed.keypoints[0][RIGHT_HAND][[8, 12, 16]]
+    palm = closed.vertices[0][regions["right_hand"]]
+    assert torch.cdist(tips, palm).min(1).values.max() < 0.02
+    back = verts[regions["buttocks"]]
+    assert len(back) > 50 and back[:, 1].mean() > 0.0  # behind the body (the body faces -y)
+    sub = anny_model.fitting_subsample
+    assert 1500 <= len(sub) <= 2500 and len(torch.unique(sub)) == len(sub)
+
+
+def test_unknown_backend_and_missing_smplx_files_are_clear():
+    with pytest.raises(ValueError, match="unknown body model"):
+        load_body_model("mano")
+    pytest.importorskip("smplx")
+    with pytest.raises(FileNotFoundError, match="smplx_model_dir"):
+        load_body_model("smplx", model_dir="/nonexistent/smplx")
+
+
+@pytest.mark.skipif(not os.environ.get("SMPLX_MODEL_DIR"), reason="set SMPLX_MODEL_DIR to a folder with SMPL-X model files")
+def test_smplx_backend_with_user_files():
+    pytest.importorskip("smplx")
+    model = load_body_model("smplx", model_dir=os.environ["SMPLX_MODEL_DIR"])
+    params = model.init_params(2)
+    out = model(params)
+    assert out.vertices.shape == (2, 10475, 3)
+    assert out.keypoints.shape == (2, 137, 3)
+    params.right_hand_pose[1, :, 0] = 0.8
+    moved = (model(params).keypoints[1] - out.keypoints[1]).norm(dim=-1)
+    assert moved[RIGHT_HAND].max() > 0.01 and moved[LEFT_HAND].max() < 1e-6

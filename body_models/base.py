@@ -11,6 +11,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+import roma
 import torch
 
 PARAM_FIELDS = (
@@ -102,24 +103,12 @@ class BodyOutput:
 
 
 def axis_angle_to_matrix(axis_angle: torch.Tensor) -> torch.Tensor:
-    """Rodrigues' formula, (..., 3) -> (..., 3, 3); smooth at zero."""
-    angle_sq = (axis_angle * axis_angle).sum(-1, keepdim=True)[..., None]  # (..., 1, 1)
-    angle = torch.sqrt(angle_sq + 1e-12)
-    x, y, z = axis_angle.unbind(-1)
-    zero = torch.zeros_like(x)
-    skew = torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*axis_angle.shape[:-1], 3, 3)
-    small = angle_sq < 1e-8
-    # sin(a)/a and (1-cos(a))/a^2, with Taylor expansions near zero.
-    sin_term = torch.where(small, 1.0 - angle_sq / 6.0, torch.sin(angle) / angle)
-    cos_term = torch.where(small, 0.5 - angle_sq / 24.0, (1.0 - torch.cos(angle)) / (angle_sq + 1e-12))
-    eye = torch.eye(3, dtype=axis_angle.dtype, device=axis_angle.device).expand_as(skew)
-    return eye + sin_term * skew + cos_term * (skew @ skew)
+    """(..., 3) rotation vectors -> (..., 3, 3) matrices (roma; smooth at zero, exact gradients there)."""
+    return roma.rotvec_to_rotmat(axis_angle)
 
 
 def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
-    """(..., 3, 3) rotation matrices -> (..., 3) axis-angle (via roma, numerically robust)."""
-    import roma
-
+    """(..., 3, 3) rotation matrices -> (..., 3) axis-angle (roma, numerically robust)."""
     return roma.rotmat_to_rotvec(matrix)
 
 

@@ -1,4 +1,4 @@
-"""Command line: `intercap validate | run | eval | synth`."""
+"""Command line: `intercap validate | run | run-many | eval | synth`."""
 from __future__ import annotations
 
 import argparse
@@ -47,12 +47,143 @@ def _cmd_eval(args) -> int:
     return 0
 
 
+def _cmd_run_many(args) -> int:
+    from intercap.batch import format_summary, run_many
+    from intercap.config import load_config
+
+    overrides = list(args.set or []) + ([f"run.stages={args.stages}"] if args.stages else [])
+    cfg = load_config(args.config, overrides + (["run.force=true"] if args.force else []))
+    try:
+        rows = run_many(args.sessions, args.out, cfg, address=args.address, local=args.local,
+                        cpus_per_task=args.cpus_per_task, gpus_per_task=args.gpus_per_task)
+    except ImportError as exc:
+        print(f"intercap run-many: {exc}", file=sys.stderr)
+        return 2
+    print(format_summary(rows))
+    failed = sum(r.status == "failed" for r in rows)
+    summary = Path(args.out).resolve() / "summary.csv"
+    print(f"{len(rows) - failed} of {len(rows)} sessions done, {failed} failed; summary in {summary}")
+    return 1 if failed else 0
+
+
+def _cmd_view(args) -> int:
+    from intercap.evaluation.viewer import ViewerError, serve
+
+    try:
+        serve(args.out, port=args.port, session=args.session, block=True)
+    except ViewerError as exc:
+        print(f"intercap view: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from intercap.evaluation.report import write_report
+
+    path = write_report(args.out, session=args.session, gt=args.gt, progress=not args.quiet)
+    print(f"report written to {path.resolve()}")
+    return 0
+
+
 def _cmd_synth(args) -> int:
     from intercap.synth.generator import config_from_args, generate_session
 
     path = generate_session(config_from_args(args), args.out)
     print(f"synthetic session written to {path}")
     return 0
+
+
+def _cmd_import_k4a(args) -> int:
+    from intercap.io.k4a import import_k4a
+
+    r = import_k4a(
+        args.out_session, args.recordings, start=args.start, end=args.end, stride=args.stride,
+        color_resolution=args.color_resolution, calibration=args.calibration,
+        uncalibrated=args.uncalibrated, workers=args.workers, overwrite=args.overwrite,
+    )
+    for cam in r["cameras"]:
+        print(f"{cam}: {len(r['dropped'][cam])} dropped frames, {len(r['frames_without_depth'][cam])} without depth")
+    if r["placeholder_poses"]:
+        print(f"poses of {', '.join(r['placeholder_poses'])} are placeholders (identity): run `intercap calibrate`")
+    print(f"{r['frames']} frames at {r['fps']:g} fps imported in {r['seconds']:.2f} s to {Path(args.out_session).resolve()}")
+    return 0
+
+
+def _cmd_import_behave(args) -> int:
+    from intercap.io.behave import import_behave
+
+    r = import_behave(args.seq_dir, args.out_session, calib_dir=args.calib, objects_dir=args.objects,
+                      overwrite=args.overwrite, start=args.start, end=args.end)
+    print(f"{r['frames']} frames ({', '.join(r['cameras'])}; object {r['object']}, {r['object_fits']} fits) "
+          f"at {r['fps']:g} fps imported in {r['seconds']:.2f} s to {Path(args.out_session).resolve()}")
+    return 0
+
+
+def _cmd_import_intercap(args) -> int:
+    from intercap.io.intercap_dataset import import_intercap
+
+    r = import_intercap(args.seq_dir, args.out_session, args.calib, objects_dir=args.objects, fits=args.fits,
+                        which=args.calibration_set, subject=args.subject, motion=args.motion, fps=args.fps,
+                        overwrite=args.overwrite, start=args.start, end=args.end)
+    for cam, miss in r["dropped"].items():
+        if miss:
+            print(f"{cam}: {len(miss)} dropped frames")
+    print(f"{r['frames']} frames ({r['calibration']}) imported in {r['seconds']:.2f} s to {Path(args.out_session).resolve()}")
+    return 0
+
+
+def add_import_parsers(sub) -> argparse._SubParsersAction:
+    """`intercap import <importer> ...`: the group of importers; returns its subparsers
+    so each importer adds itself with `isub.add_parser(name)` + `set_defaults(func=...)`."""
+    imp = sub.add_parser("import", help="import recordings or datasets into a session folder")
+    isub = imp.add_subparsers(dest="importer", required=True)
+
+    p = isub.add_parser("k4a", help="Azure Kinect recordings (.mkv), no SDK needed")
+    p.add_argument("out_session", help="session folder to write (must not exist)")
+    p.add_argument("recordings", nargs="+", help="one .mkv per device of a synchronised rig")
+    p.add_argument("--start", help="first frame (index, or seconds as 2.5s) of the aligned frames")
+    p.add_argument("--end", help="last frame, inclusive (index, or seconds as 10s)")
+    p.add_argument("--stride", type=int, default=1, help="keep every n-th frame")
+    p.add_argument("--color-resolution", help="downscale colour (and registered depth): WxH or a height, e.g. 360")
+    p.add_argument("--calibration", help="calibration.json of ours giving the rig's poses (from `intercap calibrate`)")
+    p.add_argument("--uncalibrated", action="store_true",
+                   help="several devices without --calibration: write identity placeholder poses")
+    p.add_argument("--workers", type=int, default=2, help="threads for registration and encoding")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT_SESSION if it exists")
+    p.set_defaults(func=_cmd_import_k4a)
+
+    p = isub.add_parser("behave", help="a BEHAVE sequence (t0000.000/k0.color.jpg ...)")
+    p.add_argument("seq_dir", help="BEHAVE sequence folder (sequences/<Date>_<Sub>_<object>...)")
+    p.add_argument("out_session", help="session folder to write (must not exist)")
+    p.add_argument("--calib", help="BEHAVE's calibs/ folder (<Date>/config/<k>/config.json, intrinsics/<k>/calibration.json)")
+    p.add_argument("--objects", help="BEHAVE's objects/ folder (<object>/<object>_f1000.ply)")
+    p.add_argument("--start", type=int, help="first frame (index in time order)")
+    p.add_argument("--end", type=int, help="last frame, inclusive")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT_SESSION if it exists")
+    p.set_defaults(func=_cmd_import_behave)
+
+    p = isub.add_parser("intercap", help="an InterCap segment (Frames_Cam<k>/color ...)")
+    p.add_argument("seq_dir", help="InterCap segment folder (RGBD_Images/<subject>/<motion>/Seg_<n>)")
+    p.add_argument("out_session", help="session folder to write (must not exist)")
+    p.add_argument("--calib", required=True, help="InterCap's Data/ folder (calibration_first|second|third/Color*.json)")
+    p.add_argument("--objects", help="InterCap's objs/ folder (<motion>.ply)")
+    p.add_argument("--fits", help="their res_tuned.pkl: object fits as ground_truth/object_poses.npz")
+    p.add_argument("--calibration-set", choices=["first", "second", "third"],
+                   help="override the calibration session chosen from subject and motion")
+    p.add_argument("--subject", type=int, help="subject number (default: from the path)")
+    p.add_argument("--motion", type=int, help="motion (object) number (default: from the path)")
+    p.add_argument("--fps", type=float, default=30.0)
+    p.add_argument("--start", type=int, help="first InterCap frame number")
+    p.add_argument("--end", type=int, help="last InterCap frame number, inclusive")
+    p.add_argument("--overwrite", action="store_true", help="replace OUT_SESSION if it exists")
+    p.set_defaults(func=_cmd_import_intercap)
+    return isub
+
+
+def _cmd_calibrate(args) -> int:
+    from intercap.calib.board import calibrate_command
+
+    return calibrate_command(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -81,11 +212,45 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", help="where to write the figures (default OUT/eval.json)")
     p.set_defaults(func=_cmd_eval)
 
+    p = sub.add_parser("run-many", help="run the pipeline on many sessions as Ray tasks (resumable per session)")
+    p.add_argument("sessions", nargs="+", metavar="SESSION_GLOB", help="session folders or glob patterns")
+    p.add_argument("--out", required=True, help="ROOT: results go to ROOT/<session name>/, the table to ROOT/summary.csv")
+    p.add_argument("--address", help="existing Ray cluster: ray://HEAD:10001, or auto on a cluster node (default: local Ray)")
+    p.add_argument("--local", action="store_true", help="no Ray: run the sessions one after another in this process")
+    p.add_argument("--config", help="YAML file overriding the defaults")
+    p.add_argument("--set", action="append", metavar="SECTION.KEY=VALUE", help="override one setting (repeatable)")
+    p.add_argument("--stages", help="comma-separated stages to run (default: all built stages)")
+    p.add_argument("--force", action="store_true", help="redo sessions and stages already done")
+    p.add_argument("--cpus-per-task", type=float, default=1, help="Ray CPUs reserved per session (default 1)")
+    p.add_argument("--gpus-per-task", type=float, help="Ray GPUs per session (default: 1 with run.device=cuda, else 0)")
+    p.set_defaults(func=_cmd_run_many)
+
+    add_import_parsers(sub)
+
+    p = sub.add_parser("view", help="interactive 3D viewer of a results folder in the browser (viser)")
+    p.add_argument("out", help="results folder written by `intercap run`")
+    p.add_argument("--port", type=int, default=0, help="port on localhost (default: a free one)")
+    p.add_argument("--session", help="the session folder (default: the one recorded in OUT/run.json)")
+    p.set_defaults(func=_cmd_view)
+
+    p = sub.add_parser("report", help="write OUT/report/index.html: overlays, curves, contact, evaluation")
+    p.add_argument("out", help="results folder written by `intercap run`")
+    p.add_argument("--gt", help="session folder with ground_truth/: adds the evaluation table and error curves")
+    p.add_argument("--session", help="the session folder (default: the one recorded in OUT/run.json)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=_cmd_report)
+
     p = sub.add_parser("synth", help="write a synthetic session with ground truth")
     from intercap.synth.generator import build_arg_parser
 
     build_arg_parser(p)  # adds OUT and the generator's options
     p.set_defaults(func=_cmd_synth)
+
+    p = sub.add_parser("calibrate", help="rig extrinsics from a recording of a ChArUco or checkerboard board")
+    from intercap.calib.board import add_calibrate_arguments
+
+    add_calibrate_arguments(p)
+    p.set_defaults(func=_cmd_calibrate)
     return parser
 
 

@@ -39,6 +39,7 @@ class PrepareConfig:
     icp_max_distance_m: float = 0.05
     calib_warn_mm: float = 10.0  # neighbour disagreement above this is flagged
     calib_warn_deg: float = 1.0
+    calib_k_sigma: float = 3.0  # ... and only when it is also this many of its standard deviations (clear evidence)
     save_clouds: bool = True  # write one fused .ply per checked frame for inspection
     seed: int = 0
 
@@ -160,6 +161,9 @@ class GlobalConfig:
     w_body_acceleration: float = 10.0  # acceleration of body vertices, (m/s^2)^2 per frame (30 oversmooths: BENCHMARKS.md)
     w_body_motion_prior: float = 0.0  # E_S, learned (LEMO-style); 100 helped drink, hurt pick (BENCHMARKS.md)
     w_hand_motion_prior: float = 0.0  # E_L + E_R, learned; 20 with E_S above
+    w_flight: float = 1.0e9  # GraviCap: object centre onto the gravity parabola in free flight (m^2 per frame); 0 = off
+    flight_min_frames: int = 8  # free flight: at least this many frames touching neither body nor ground
+    flight_ground_margin_m: float = 0.02  # the object touches the ground when its surface comes this close
     seed: int = 0
 
 
@@ -183,21 +187,46 @@ class ContactConfig:
 class PhysicsConfig:
     """Forces, torques and free flight from the 4D result (the `physics` stage)."""
 
-    seed: int = 0
+    mu: float = 0.5  # friction coefficient of the floor (sole and object contacts)
+    friction_edges: int = 4  # edges of the linearised friction cone (pyramid)
+    body_density_kg_m3: float = 1010.0  # body mass = rest mesh volume x this, unless session.yaml gives body.mass_kg
+    sex: str = "auto"  # segment table: auto (blend by the fitted phenotype), male, female
+    filter: str = "adaptive"  # adaptive (Savitzky-Golay, window per trajectory), savgol, butterworth, none
+    filter_window_s: float = 0.3  # the `savgol` filter's window
+    filter_order: int = 3  # Savitzky-Golay polynomial order
+    cutoff_hz: float = 6.0  # Butterworth cut-off
+    foot_contact_m: float = 0.03  # a sole point this near the floor can push on it
+    object_ground_m: float = 0.02  # an object point this near the floor can push on it
+    object_weight: float = 10.0  # weight of the object's wrench equations against the body's
+    flight_min_frames: int = 8  # shortest free flight (object touching neither body nor floor)
 
 
 @dataclass
 class ExportConfig:
     """Meshes and one dataset file from the results (the `export` stage)."""
 
-    seed: int = 0
+    meshes: bool = True  # OUT/meshes/body_<frame>.ply and object_<frame>.ply
+    scene: bool = False  # also OUT/meshes/scene_<frame>.ply: body + object, contact vertices red
+    contact_distance_m: float = 0.02  # scene: vertices this near the other surface in contact frames are red
+    vertices_float16: bool = False  # body_vertices in the dataset file as float16 (half the size; steps of 1 mm at 1-2 m, 2 mm at 2-4 m)
+    behave: bool = False  # also OUT/export/behave/ in BEHAVE's layout and conventions
+    behave_frame: str = "world"  # BEHAVE files in our world frame, or in this camera's frame (BEHAVE uses its k1)
 
 
 @dataclass
 class ReportConfig:
     """Mesh overlays and the HTML report written at the end of `intercap run`."""
 
-    seed: int = 0
+    enabled: bool = True  # `intercap run` writes OUT/report/index.html after the stages
+    overlay_stages: list[str] = field(default_factory=lambda: ["object", "body", "global"])
+    overlay_every: int = 10  # mesh overlays of every n-th frame, in every view
+    alpha: float = 0.6  # opacity of the rendered meshes over the colour images
+    video: bool = True  # an MP4 of one camera over the whole sequence (the last stage that ran)
+    video_camera: str = ""  # camera name for the MP4; "" = the first camera
+    thumbnail_width: int = 200  # pixels; thumbnails are embedded, the full images sit beside the page
+    heatmap_distance_m: float = 0.02  # contact heat map: a vertex this close to the object touches it
+    points_per_view: int = 300  # depth points per view for the cloud-to-fit curves
+    max_frames: int = 600  # geometric per-frame curves use at most this many frames, evenly spread
 
 
 @dataclass

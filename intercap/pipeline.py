@@ -25,7 +25,7 @@ from intercap.io.files import read_json, write_json
 log = logging.getLogger(__name__)
 
 # The order of DESIGN.md. Stages not yet built are listed so errors can say so.
-ORDER = ["prepare", "detect", "object", "body", "contact", "global", "export"]
+ORDER = ["prepare", "detect", "object", "body", "contact", "global", "physics", "export"]
 
 
 @dataclass
@@ -65,10 +65,22 @@ def _run_global(session, cfg, out_dir, progress):
     return global_fit.run(session, cfg, out_dir, progress=progress)
 
 
+def _run_physics(session, cfg, out_dir, progress):
+    from intercap.stages import physics
+
+    return physics.run(session, cfg, out_dir, progress=progress)
+
+
 def _run_contact(session, cfg, out_dir, progress):
     from intercap.stages import contact
 
     return contact.run(session, cfg, out_dir, progress=progress)
+
+
+def _run_export(session, cfg, out_dir, progress):
+    from intercap.stages import export
+
+    return export.run(session, cfg, out_dir, progress=progress)
 
 
 STAGES: dict[str, Stage] = {
@@ -78,6 +90,8 @@ STAGES: dict[str, Stage] = {
     "body": Stage("body", _run_body, ("detect", "body")),
     "contact": Stage("contact", _run_contact, ("contact",)),
     "global": Stage("global", _run_global, ("body", "global_")),
+    "physics": Stage("physics", _run_physics, ("physics",)),
+    "export": Stage("export", _run_export, ("export",)),
 }
 
 
@@ -124,6 +138,7 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     save_config(cfg, out_dir / "config.yaml")
+    write_json(out_dir / "run.json", {"session": str(Path(session.root).resolve()), "stages": names})  # for `view`, `report`
     metrics_path = out_dir / "metrics.json"
     metrics = read_json(metrics_path) if metrics_path.exists() else {}
 
@@ -156,4 +171,11 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
         write_json(marker, {"stage": name, "fingerprint": fingerprint, "seconds": seconds,
                             "finished": time.strftime("%Y-%m-%dT%H:%M:%S")})
         log.info("%s: done in %.1f s", name, seconds)
+    if cfg.report.enabled:  # OUT/report/index.html; a failure there never loses the results above
+        try:
+            from intercap.evaluation.report import write_report
+
+            write_report(out_dir, session=session, cfg=cfg, progress=progress)
+        except Exception as exc:  # noqa: BLE001
+            log.warning("report not written (%s: %s); retry with `intercap report %s`", type(exc).__name__, exc, out_dir)
     return metrics

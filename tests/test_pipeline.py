@@ -65,12 +65,15 @@ def test_resume_skips_done_stage_and_redoes_changed_one(prepared):
     assert json.loads(marker.read_text())["fingerprint"] != json.loads(before)["fingerprint"]
 
 
-def test_unbuilt_or_unknown_stage_is_an_error_not_a_fake(tmp_path):
+def test_unbuilt_or_unknown_stage_is_an_error_not_a_fake(tmp_path, monkeypatch):
+    import intercap.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "ORDER", pipeline.ORDER + ["planned"])  # a listed stage not built yet
     with pytest.raises(StageError, match="not implemented yet"):
-        run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=export"]), progress=False)
+        run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=planned"]), progress=False)
     with pytest.raises(StageError, match="unknown stage"):
         run_pipeline(SAMPLE, tmp_path, load_config(overrides=["run.stages=dance"]), progress=False)
-    assert not (tmp_path / "export").exists()
+    assert not (tmp_path / "planned").exists()
 
 
 def test_config_overrides_and_errors(tmp_path):
@@ -85,10 +88,13 @@ def test_config_overrides_and_errors(tmp_path):
     assert load_config(yaml_file).prepare.pixel_stride == 4
 
 
-def test_cli_validate_and_run_errors(tmp_path, capsys):
+def test_cli_validate_and_run_errors(tmp_path, capsys, monkeypatch):
+    import intercap.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "ORDER", pipeline.ORDER + ["planned"])
     assert main(["validate", str(SAMPLE)]) == 0
     assert "cam" in capsys.readouterr().out
     assert main(["validate", str(tmp_path)]) == 1
     assert "session.yaml" in capsys.readouterr().out
-    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "export"]) == 2
+    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "planned"]) == 2
     assert "not implemented yet" in capsys.readouterr().err

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 import trimesh
 
+from intercap.body_models import axis_angle_to_matrix
 from intercap.geometry.cameras import Cameras
 from intercap.geometry.rendering import MeshTopology, object_crops, render
 
@@ -69,17 +70,6 @@ def bench_cameras(n: int = 4, distance: float = 2.0, dtype=torch.float32, device
     return Cameras.from_infos(infos, device=device, dtype=dtype)
 
 
-def axis_angle_matrix(r: torch.Tensor) -> torch.Tensor:
-    """(3,) axis-angle -> (3, 3) rotation (Rodrigues), differentiable, safe near 0."""
-    theta2 = (r * r).sum()
-    theta = (theta2 + 1e-24).sqrt()
-    k = torch.zeros(3, 3, dtype=r.dtype, device=r.device)
-    k[0, 1], k[0, 2], k[1, 0], k[1, 2], k[2, 0], k[2, 1] = -r[2], r[1], r[2], -r[0], -r[1], r[0]
-    a = torch.where(theta2 > 1e-12, torch.sin(theta) / theta, 1 - theta2 / 6)
-    b = torch.where(theta2 > 1e-12, (1 - torch.cos(theta)) / (theta2 + 1e-24), 0.5 - theta2 / 24)
-    return torch.eye(3, dtype=r.dtype, device=r.device) + a * k + b * (k @ k)
-
-
 def _peak_rss_kb() -> tuple[int, int]:
     s = open("/proc/self/status").read()
     return int(re.search(r"VmHWM:\s+(\d+)", s).group(1)), int(re.search(r"VmRSS:\s+(\d+)", s).group(1))
@@ -96,7 +86,7 @@ def bench_one(mesh, cameras, size, sigma, repeats, device, dtype, clock=time.per
     v_obj = torch.as_tensor(np.asarray(mesh.vertices), dtype=dtype, device=device)
     rot = torch.tensor([0.3, -0.2, 0.5], dtype=dtype, device=device)
     trans = torch.tensor([0.0, 0.0, 0.8], dtype=dtype, device=device)
-    verts0 = (v_obj @ axis_angle_matrix(rot).T + trans)[None]
+    verts0 = (v_obj @ axis_angle_to_matrix(rot).T + trans)[None]
     crops = object_crops(verts0, cameras, size, margin=0.15)
     with torch.no_grad():  # target: the object moved by 1 cm
         moved = verts0 + torch.tensor([0.01, 0.0, 0.0], dtype=dtype, device=device)
@@ -105,7 +95,7 @@ def bench_one(mesh, cameras, size, sigma, repeats, device, dtype, clock=time.per
     t = trans.clone().requires_grad_(True)
 
     def forward():
-        verts = (v_obj @ axis_angle_matrix(r).T + t)[None]
+        verts = (v_obj @ axis_angle_to_matrix(r).T + t)[None]
         out = render(verts, topo, cameras, crops, size, sigma)
         mask = target.coverage & out.coverage
         e_s = ((out.silhouette - target.silhouette) ** 2).sum()

@@ -6,6 +6,7 @@ written (B frames, C views, h x w render grid).
 from __future__ import annotations
 
 import numpy as np
+import roma
 import torch
 
 
@@ -50,12 +51,8 @@ def occlusion_weight(rendered_depth: torch.Tensor, observed_depth: torch.Tensor,
 
 
 def rotation_6d_to_matrix(r6: torch.Tensor) -> torch.Tensor:
-    """Continuous 6D rotation representation (..., 6) -> (..., 3, 3) by Gram-Schmidt (columns)."""
-    a, b = r6[..., :3], r6[..., 3:]
-    x = torch.nn.functional.normalize(a, dim=-1)
-    y = torch.nn.functional.normalize(b - (x * b).sum(-1, keepdim=True) * x, dim=-1)
-    z = torch.cross(x, y, dim=-1)
-    return torch.stack([x, y, z], dim=-1)
+    """Continuous 6D rotation representation (..., 6) -> (..., 3, 3): Gram-Schmidt on the two columns (roma)."""
+    return roma.special_gramschmidt(torch.stack([r6[..., :3], r6[..., 3:]], dim=-1))
 
 
 def matrix_to_rotation_6d(R: torch.Tensor) -> torch.Tensor:
@@ -202,3 +199,26 @@ def vertex_acceleration(points: torch.Tensor, fps: float) -> torch.Tensor:
     acc = (points[2:] - 2 * points[1:-1] + points[:-2]) * fps**2
     per_frame = acc.pow(2).sum(-1).mean(-1)
     return torch.nn.functional.pad(per_frame, (1, 1))
+
+
+def flight_parabola(centres: torch.Tensor, episode: torch.Tensor, times: torch.Tensor,
+                    gravity: torch.Tensor) -> torch.Tensor:
+    """GraviCap's free-flight term: per frame the squared distance of the object's centre of mass
+    (W, 3) to the parabola p0 + v0 t + 0.5 g t^2 that fits best, with g (3,) fixed, the frames of
+    each flight episode (episode (W,) long: its id, -1 outside any flight) in the window, times
+    (W,) seconds. p0, v0 are solved in closed form per episode (linear least squares on
+    centre - 0.5 g t^2), so the term is differentiable in the centres and only the trajectory's
+    departure from a gravity parabola costs -> (W,), metres^2 (0 outside flights and for
+    episodes with fewer than 3 frames in the window)."""
+    out = torch.zeros(len(centres), dtype=centres.dtype, device=centres.device)
+    for e in torch.unique(episode[episode >= 0]).tolist():
+        sel = torch.nonzero(episode == e)[:, 0]
+        if len(sel) < 3:
+            continue
+        t = (times[sel] - times[sel[0]]).to(centres)[:, None]  # (n, 1)
+        y = centres[sel] - 0.5 * t * t * gravity.to(centres)  # (n, 3): p0 + v0 t when on the parabola
+        dt, dy = t - t.mean(0), y - y.mean(0)
+        v0 = (dt * dy).sum(0) / (dt * dt).sum(0).clamp(min=1e-12)
+        residual = dy - dt * v0
+        out = out.index_put((sel,), residual.pow(2).sum(-1))
+    return out

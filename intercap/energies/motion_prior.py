@@ -55,7 +55,7 @@ import numpy as np
 import torch
 from torch import nn
 
-DATA_DIR = Path(__file__).resolve().parent / "data"
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"  # intercap/data
 PRIOR_FILES = {"body": DATA_DIR / "motion_prior_body.npz", "hand": DATA_DIR / "motion_prior_hand.npz"}
 MODEL_FPS = 30.0
 HEADING_SMOOTH_S = 0.5  # box filter over the lateral hip axis, seconds

@@ -47,9 +47,10 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+import roma
 import torch
 
-DATA_DIR = Path(__file__).resolve().parent / "data"
+DATA_DIR = Path(__file__).resolve().parents[1] / "data"  # intercap/data
 ANATOMY_FILE = DATA_DIR / "anny_anatomy.npz"
 POSE_PRIOR_FILE = DATA_DIR / "body_pose_prior.npz"
 # Mirror a right-side rotation vector into the left side's convention (model x is the person's left).
@@ -192,46 +193,13 @@ LEARNED_GROUPS = (
 
 
 # ---------------------------------------------------------------------------
-# Rotation helpers (quaternions w-first), all batched over leading dimensions
+# Rotation helpers: quaternions are roma's (x, y, z, w), batched over leading dimensions
 # ---------------------------------------------------------------------------
-
-def axis_angle_to_quaternion(rotvec: torch.Tensor) -> torch.Tensor:
-    """(..., 3) -> (..., 4) unit quaternion (w, x, y, z), w >= 0; smooth at zero."""
-    angle_sq = (rotvec * rotvec).sum(-1, keepdim=True)
-    angle = torch.sqrt(angle_sq.clamp_min(1e-16))
-    small = angle_sq < 1e-8
-    half_sinc = torch.where(small, 0.5 - angle_sq / 48.0, torch.sin(angle / 2) / angle)
-    w = torch.where(small, 1.0 - angle_sq / 8.0, torch.cos(angle / 2))
-    return torch.cat([w, half_sinc * rotvec], -1)
-
-
-def quaternion_multiply(q: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
-    """Hamilton product (..., 4) x (..., 4): the rotation p, then q."""
-    w1, x1, y1, z1 = q.unbind(-1)
-    w2, x2, y2, z2 = p.unbind(-1)
-    return torch.stack(
-        [
-            w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-            w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-            w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2,
-        ],
-        -1,
-    )
-
-
-def quaternion_to_axis_angle(q: torch.Tensor) -> torch.Tensor:
-    """(..., 4) -> (..., 3) rotation vector with angle in [0, pi]; smooth at zero."""
-    q = q * torch.where(q[..., :1] < 0, -1.0, 1.0)
-    w, v = q[..., :1], q[..., 1:]
-    n = torch.sqrt((v * v).sum(-1, keepdim=True).clamp_min(1e-16))
-    return v * (2.0 * torch.atan2(n, w) / n)
-
 
 def in_frame(q: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
     """Quaternions (..., J, 4) re-expressed in per-joint frames (J, 3, 3) whose columns are the new axes."""
-    v = torch.einsum("jab,...ja->...jb", frames, q[..., 1:])
-    return torch.cat([q[..., :1], v], -1)
+    v = torch.einsum("jab,...ja->...jb", frames, q[..., :3])
+    return torch.cat([v, q[..., 3:]], -1)
 
 
 def swing_twist_angles(q: torch.Tensor) -> torch.Tensor:
@@ -239,8 +207,8 @@ def swing_twist_angles(q: torch.Tensor) -> torch.Tensor:
 
     q = swing * twist with the twist about z; the swing (axis in the xy-plane) is
     reported as its rotation vector's x and y components, the twist as a signed angle."""
-    q = q * torch.where(q[..., :1] < 0, -1.0, 1.0)
-    w, x, y, z = q.unbind(-1)
+    q = q * torch.where(q[..., 3:] < 0, -1.0, 1.0)
+    x, y, z, w = q.unbind(-1)
     n = torch.sqrt((w * w + z * z).clamp_min(1e-16))  # cos(swing / 2)
     m = torch.sqrt((x * x + y * y).clamp_min(1e-16))  # sin(swing / 2)
     scale = 2.0 * torch.atan2(m, n) / (m * n)
@@ -504,14 +472,14 @@ def composed_quaternions(body_pose: torch.Tensor, bones: torch.Tensor, mirror: t
     in the left side's convention."""
     n = body_pose.shape[1]
     both = torch.cat([body_pose, body_pose * body_pose.new_tensor(MIRROR)], 1)  # (B, 2n, 3)
-    q = axis_angle_to_quaternion(both)  # (B, 2n, 4)
+    q = roma.rotvec_to_unitquat(both)  # (B, 2n, 4)
     right = (mirror[:, 1] < 0).long() * n  # (R,) offset into the mirrored half
     out = q[:, bones[:, 0] + right]
     for k in range(1, bones.shape[1]):
         rows = torch.nonzero(bones[:, k] >= 0).squeeze(1)  # only rows with a k-th bone
         if len(rows) == 0:
             break
-        product = quaternion_multiply(out[:, rows], q[:, bones[rows, k] + right[rows]])
+        product = roma.quat_product(out[:, rows], q[:, bones[rows, k] + right[rows]])
         out = out.index_copy(1, rows, product)
     return out
 
@@ -544,7 +512,7 @@ def joint_limit_excess(body_pose: torch.Tensor) -> torch.Tensor:
 def second_bone_swing(body_pose: torch.Tensor) -> torch.Tensor:
     """(B, Ns, 2) swing (radians) of the bones that carry no joint of their own (upperleg02, ...)."""
     a = _anatomy_like(body_pose)
-    q = axis_angle_to_quaternion(body_pose[:, a.second_bones] * a.second_mirror)
+    q = roma.rotvec_to_unitquat(body_pose[:, a.second_bones] * a.second_mirror)
     return swing_twist_angles(in_frame(q, a.second_frames))[..., :2]
 
 
@@ -583,8 +551,8 @@ def body_pose_from_joint_angles(
         theta = theta * a.signs[r]  # signed angles about the stored (right-handed) frame's axes
         swing = torch.cat([theta[:, :2], torch.zeros_like(theta[:, :1])], 1)
         twist = torch.cat([torch.zeros_like(theta[:, :2]), theta[:, 2:]], 1)
-        q = quaternion_multiply(axis_angle_to_quaternion(swing), axis_angle_to_quaternion(twist))
-        rotvec = quaternion_to_axis_angle(q) @ a.frames[r].T  # frame -> model axes
+        q = roma.quat_product(roma.rotvec_to_unitquat(swing), roma.rotvec_to_unitquat(twist))
+        rotvec = roma.unitquat_to_rotvec(q) @ a.frames[r].T  # frame -> model axes
         pose[:, int(a.bones[r, 0])] = rotvec * a.mirror[r]
     return pose
 
@@ -606,7 +574,7 @@ def hand_angles(hand_pose: torch.Tensor, side: str) -> torch.Tensor:
     a = _anatomy_like(hand_pose)
     if side in ("R", "right"):
         hand_pose = hand_pose * hand_pose.new_tensor(MIRROR)
-    q = axis_angle_to_quaternion(hand_pose)
+    q = roma.rotvec_to_unitquat(hand_pose)
     return swing_twist_angles(in_frame(q, a.hand_frames)) * a.hand_signs
 
 
@@ -617,8 +585,8 @@ def hand_pose_from_angles(angles: torch.Tensor, side: str) -> torch.Tensor:
     theta = torch.deg2rad(torch.as_tensor(angles, dtype=torch.float32)) * a.hand_signs
     swing = torch.cat([theta[..., :2], torch.zeros_like(theta[..., :1])], -1)
     twist = torch.cat([torch.zeros_like(theta[..., :2]), theta[..., 2:]], -1)
-    q = quaternion_multiply(axis_angle_to_quaternion(swing), axis_angle_to_quaternion(twist))
-    pose = torch.einsum("jab,...jb->...ja", a.hand_frames, quaternion_to_axis_angle(q))  # frame -> model axes
+    q = roma.quat_product(roma.rotvec_to_unitquat(swing), roma.rotvec_to_unitquat(twist))
+    pose = torch.einsum("jab,...jb->...ja", a.hand_frames, roma.unitquat_to_rotvec(q))  # frame -> model axes
     return pose * pose.new_tensor(MIRROR) if side in ("R", "right") else pose
 
 
@@ -643,7 +611,7 @@ def learned_features(body_pose: torch.Tensor) -> torch.Tensor:
     left convention), components in each joint's frame, the kept components only."""
     table = _learned_table(body_pose.device, body_pose.dtype)
     q = composed_quaternions(body_pose, table["bones"], table["mirror"])
-    rotvec = quaternion_to_axis_angle(in_frame(q, table["frames"])).flatten(1)  # (B, 3 G)
+    rotvec = roma.unitquat_to_rotvec(in_frame(q, table["frames"])).flatten(1)  # (B, 3 G)
     return rotvec[:, table["keep"]]
 
 

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from intercap.geometry.surfaces import TriangleSurface, sample_surface
 
@@ -26,10 +27,9 @@ def rotation_angle_deg(Ra, Rb):
 
 
 def axis_angle_matrix(axis, angle_rad):
-    """Rotation matrix (3, 3) about a unit axis (Rodrigues)."""
-    a = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    return np.eye(3) + math.sin(angle_rad) * K + (1 - math.cos(angle_rad)) * (K @ K)
+    """Rotation matrix (3, 3) by `angle_rad` about `axis` (any length)."""
+    a = np.asarray(axis, np.float64)
+    return Rotation.from_rotvec(a / np.linalg.norm(a) * angle_rad).as_matrix()
 
 
 @dataclass

@@ -50,7 +50,7 @@ DIST_LENGTHS = (0, 4, 5, 8)
 SESSION_KEYS = ("fps", "object", "frames", "contact_frames", "ground", "body")
 
 
-OBJECT_KEYS = ("mesh", "name", "mass_kg", "contact_vertices", "initial_pose")
+OBJECT_KEYS = ("mesh", "name", "mass_kg", "density_kg_m3", "contact_vertices", "initial_pose")
 
 
 _FRAME_NAME = re.compile(r"^(\d{6})(\.[^.]+)$")
@@ -89,6 +89,7 @@ class ObjectInfo:
     name: str
     mesh_path: Path
     mass_kg: float | None = None
+    density_kg_m3: float | None = None  # mass from the mesh volume when mass_kg is absent
     contact_vertices: np.ndarray | None = None  # (K,) int64 vertex ids
     initial_pose: tuple[np.ndarray, np.ndarray] | None = None  # R (3, 3), t (3,): object -> world at frames.start
     _mesh: trimesh.Trimesh | None = field(default=None, init=False, repr=False, compare=False)
@@ -368,6 +369,14 @@ def parse_object(root: Path, block: Any, path: Path, out: ProblemList) -> Object
             ok = False
         else:
             obj.mass_kg = float(mass)
+
+    density = block.get("density_kg_m3")
+    if density is not None:
+        if isinstance(density, bool) or not isinstance(density, (int, float)) or not density > 0:
+            out.fatal(path, f"`object.density_kg_m3` must be a positive number, got {density!r}")
+            ok = False
+        else:
+            obj.density_kg_m3 = float(density)
 
     contacts = block.get("contact_vertices")
     if contacts is not None:

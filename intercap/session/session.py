@@ -246,8 +246,18 @@ class Session:
         return result
 
     def has_kind(self, kind: str) -> list[bool]:
-        """Per camera: whether its folder for `kind` exists (optional inputs may be absent)."""
-        return [self._files[c][kind] is not None for c in range(self.num_cameras)]
+        """Per camera: whether it has any `kind` file (optional inputs may be absent; an empty
+        folder counts as absent)."""
+        return [bool(self._files[c][kind]) for c in range(self.num_cameras)]
+
+    def has_frame(self, cam: str | int, kind: str, frame_id: int) -> bool:
+        """Whether this view has a usable `kind` file for this frame: where it has none, stages
+        detect or derive that input for that view and frame only."""
+        return self._usable_path(self._cam_index(cam), kind, frame_id) is not None
+
+    def missing(self, kind: str) -> np.ndarray:
+        """(C, T) bool: the views and frames without a usable `kind` file."""
+        return ~self.availability()[kind]
 
     # -- ground truth -------------------------------------------------------------
     def ground_truth(self) -> GroundTruth | None:
@@ -297,9 +307,12 @@ class Session:
             dist = f"dist {cam.dist.size}" if cam.dist.size else "no distortion"
             lines.append(f"    {cam.name:<{width}}  {cam.width}x{cam.height}  {dist}  " + "; ".join(parts))
         optional = []
+        images = self.num_cameras * T
         for kind in OPTIONAL_KINDS:
-            n = sum(self.has_kind(kind))
-            optional.append(f"{KIND_DIRS[kind]} {n}/{self.num_cameras} cameras")
+            missing = int((~avail[kind]).sum())
+            fill = "detected" if kind == "keypoints" else "derived"
+            optional.append(f"{KIND_DIRS[kind]} {images - missing}/{images} images"
+                            + (f" ({missing} to be {fill})" if missing else ""))
         lines.append("  optional inputs: " + ", ".join(optional))
         if self.object is None:
             lines.append("  object: none (body only)")

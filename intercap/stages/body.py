@@ -42,6 +42,7 @@ from intercap.body_models.keypoints import BODY_25, BODY_25_EDGES, NUM_BODY, NUM
 from intercap.energies import losses, priors
 from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
+from intercap.geometry.ground import up_hint_from_cameras
 from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
 
 log = logging.getLogger(__name__)
@@ -76,8 +77,8 @@ class BodyObservations:
 
 
 class KeypointSource:
-    """Per view and frame, the (137, 3) OpenPose keypoints: the session's JSON where every camera has
-    them, otherwise what the `detect` stage wrote under OUT/detect/."""
+    """Per view and frame, the (137, 3) OpenPose keypoints: the session's JSON where that view and
+    frame has one, otherwise what the `detect` stage wrote under OUT/detect/."""
 
     def __init__(self, session, out_dir: Path, use_session: bool = True):
         from intercap.stages.detect import keypoints_path
@@ -85,15 +86,16 @@ class KeypointSource:
         self.session = session
         self.out_dir = Path(out_dir)
         self._path = keypoints_path
-        self.from_session = use_session and all(session.has_kind("keypoints"))
+        self.use_session = use_session
+        self.from_session = use_session and not session.missing("keypoints").any()
         if not self.from_session and not (self.out_dir / "detect" / "DONE.json").exists():
             raise RuntimeError(
-                "the body fit needs 2D keypoints: the session has none for some cameras and the `detect` stage "
-                f"has not run into {self.out_dir}; run `intercap run SESSION --out OUT` (detect runs before body)"
+                "the body fit needs 2D keypoints: the session lacks them for some views or frames and the `detect` "
+                f"stage has not run into {self.out_dir}; run `intercap run SESSION --out OUT` (detect runs before body)"
             )
 
     def read(self, c: int, frame_id: int) -> np.ndarray | None:
-        if self.from_session:
+        if self.use_session and self.session.has_frame(c, "keypoints", frame_id):
             return self.session.read_keypoints(c, frame_id)
         from intercap.session import openpose_to_array
 
@@ -122,12 +124,13 @@ class PersonPoints:
         self.session = session
         self.cameras = cameras
         self.cfg = cfg
-        self.use_masks = cfg.use_session_masks and all(session.has_kind("mask_person"))
+        self.session_masks = cfg.use_session_masks  # where a view and frame has its own mask file
+        derives = not cfg.use_session_masks or session.missing("mask_person").any()
         self.rays = [pixel_rays(cameras.select([c]), cam.height, cam.width)[0] for c, cam in enumerate(session.cameras)]
         self._background = None
         self._object = None
         poses = per_frame_result(out_dir, "object", "object_poses.npz")
-        if not self.use_masks and session.object is not None and poses.exists():
+        if derives and session.object is not None and poses.exists():
             data = np.load(poses)
             mesh = session.object.load_mesh()
             self._object = (np.asarray(mesh.vertices), np.asarray(mesh.faces), data["R"], data["t"],
@@ -160,7 +163,8 @@ class PersonPoints:
         return cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
 
     def mask(self, c: int, frame_id: int, depth: np.ndarray, keypoints: np.ndarray) -> np.ndarray | None:
-        if self.use_masks:
+        """The person mask of view c: the session's file where it has one, else derived from depth."""
+        if self.session_masks and self.session.has_frame(c, "mask_person", frame_id):
             mask = self.session.read_mask(c, frame_id, "person")
         else:
             from intercap.geometry.segmentation import foreground_mask
@@ -244,6 +248,34 @@ def triangulate(keypoints: torch.Tensor, cameras: Cameras) -> tuple[torch.Tensor
     z = (points[None] @ P[:, :, :3].transpose(1, 2))[..., 2] + P[:, None, 2, 3]  # (C, BK)
     in_front = ((z > 0) | (conf == 0)).all(0)
     return points.view(B, K, 3), (seen & in_front).view(B, K)
+
+
+def lift_keypoints(keypoints: torch.Tensor, points: torch.Tensor, point_valid: torch.Tensor, cameras: Cameras,
+                   radius_px: float = 12.0, behind_m: float = 0.06) -> tuple[torch.Tensor, torch.Tensor]:
+    """3D keypoints from depth where triangulation has too few views: each detected keypoint takes the
+    view's nearest segmented depth point in the image (within `radius_px`, scaled like the image
+    width / 640), pushed `behind_m` further along its camera ray (joints lie inside the body, behind
+    the surface the sensor sees), averaged over the views that lift it.
+
+    (B, C, K, 3) pixels + confidence, (B, C, P, 3) world points, (B, C, P) validity
+    -> (B, K, 3) world points and (B, K) validity."""
+    B, C, K, _ = keypoints.shape
+    P = points.shape[2]
+    flat = points.permute(1, 0, 2, 3).reshape(C, B * P, 3)
+    pix, z = project(flat, cameras)  # (C, BP, 2), (C, BP)
+    pix = pix.view(C, B, P, 2).transpose(0, 1)  # (B, C, P, 2)
+    gap = torch.cdist(keypoints[..., :2], pix)  # (B, C, K, P)
+    gap = gap.masked_fill(~point_valid[:, :, None, :], float("inf"))
+    nearest_gap, nearest = gap.min(-1)  # (B, C, K)
+    scale = cameras.K[:, 0, 2] * 2 / 640  # (C,) ~ image width / 640
+    ok = (keypoints[..., 2] > 0) & (nearest_gap < radius_px * scale[None, :, None])
+    surface = torch.gather(points, 2, nearest[..., None].expand(B, C, K, 3))  # (B, C, K, 3)
+    centres = cameras.T_world_from_cam[:, :3, 3]  # (C, 3)
+    ray = torch.nn.functional.normalize(surface - centres[None, :, None], dim=-1)
+    lifted = surface + behind_m * ray
+    w = ok.to(points.dtype)[..., None]
+    mean = (lifted * w).sum(1) / w.sum(1).clamp(min=1)
+    return mean, ok.any(1)
 
 
 def weighted_kabsch(source: torch.Tensor, target: torch.Tensor, weight: torch.Tensor):
@@ -414,10 +446,14 @@ class BodyFitter:
         Only the heading is taken from the keypoints: a full rotation fitted to the shoulders and
         hips of a bending trunk tilts the whole body and swings the legs a metre off, while the
         heading of the trunk is stable; the orient phase then fits the tilt with the legs in view.
-        Frames without triangulated torso keypoints are moved to their depth points' centroid."""
+        Torso keypoints fewer than two views see are lifted from depth (`lift_keypoints`); frames
+        with none at all are moved to their depth points' centroid."""
         B = obs.batch_size
         params = template.map(lambda t: t[-1:].expand(B, *t.shape[1:]).clone())
         target, seen = triangulate(obs.keypoints, self.cameras)
+        lifted, liftable = lift_keypoints(obs.keypoints, obs.points, obs.point_valid, self.cameras)
+        target = torch.where(seen[..., None], target, lifted)  # one view: depth gives the 3D position
+        seen = seen | liftable
         target, seen = target[:, TORSO_KEYPOINTS], seen[:, TORSO_KEYPOINTS]
         with torch.no_grad():
             placed = self.model(params).keypoints[:, TORSO_KEYPOINTS]  # (B, 6, 3) template as placed
@@ -584,6 +620,33 @@ def draw_overlay(session, model, params: BodyParams, frame_id: int, cameras: Cam
     cv2.imwrite(str(path), canvas)
 
 
+def world_up(session, out_dir: Path) -> np.ndarray:
+    """(3,) unit up in the world frame: the ground plane's normal (given in session.yaml or fitted
+    by `prepare`), else the cameras' mean -y axis. Never a world axis: rigs put the world anywhere."""
+    ground = Path(out_dir) / "prepare" / "ground.json"
+    if ground.exists():
+        return np.asarray(read_json(ground)["normal"], np.float64)
+    if session.ground is not None:
+        normal = np.asarray(session.ground[1], np.float64)
+        return normal / np.linalg.norm(normal)
+    return up_hint_from_cameras(np.stack([c.T_world_from_cam for c in session.cameras]))
+
+
+def upright_template(model, up: np.ndarray) -> BodyParams:
+    """The model's default parameters for one frame, turned so the model's up axis is the world's
+    `up` (the shortest rotation; the heading is found per frame by `BodyFitter.initialise`)."""
+    template = model.init_params(1)
+    model_up = np.asarray(model.up_axis, np.float64)
+    axis = np.cross(model_up, up)
+    angle = np.arctan2(np.linalg.norm(axis), model_up @ up)
+    if np.linalg.norm(axis) < 1e-9:  # parallel or opposite: any axis perpendicular to model up
+        axis = np.cross(model_up, np.eye(3)[np.argmin(np.abs(model_up))])
+    rotvec = torch.as_tensor(axis / np.linalg.norm(axis) * angle, dtype=template.global_orient.dtype)
+    R = axis_angle_to_matrix(rotvec) @ axis_angle_to_matrix(template.global_orient[0])
+    template.global_orient[0] = matrix_to_axis_angle(R)
+    return template
+
+
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     """The `body` stage: writes OUT/body_params.npz, body_vertices.npy, body_faces.npy, keypoints3d.npy."""
     bcfg = cfg.body
@@ -611,7 +674,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         done, valid, reproj, seconds = saved["done"], saved["valid"], saved["reprojection_px"], saved["seconds"]
         log.info("body: resuming, %d of %d frames already fitted", int(done.sum()), T)
 
-    template = model.init_params(1)  # what the next batch starts from: the last fitted frame
+    template = upright_template(model, world_up(session, out_dir))  # the next batch starts from the last fit
     batches = [np.arange(s, min(s + bcfg.batch_frames, T)) for s in range(0, T, bcfg.batch_frames)]
     bar = tqdm(total=T, desc="body", unit="frame", disable=not progress, initial=int(done.sum()))
     for batch in batches:

@@ -26,6 +26,8 @@ frame: for 3D those nearer than T_d; for annotated and 2D labels the nearest
 region of `contact.regions` and every region within `region_margin_m`),
 invalid (T,) (frames the method could not judge), and each source's labels
 (annotated, overlap_2d, distance_3d) with the 2D overlap counts (T, C).
+For the report: region_vertex_ids (concatenated, int32) with region_sizes (R,), and the
+body model's rest_vertices (V, 3) (the contact heat map is drawn on them).
 `load_contact(out_dir)` reads it back for the `global` stage.
 """
 from __future__ import annotations
@@ -270,6 +272,11 @@ def overlap_thresholds(session, ccfg) -> np.ndarray:
 
 
 _REGIONS: dict = {}
+_REST: dict = {}  # body model setting -> rest vertices (V, 3), filled with _REGIONS
+
+
+def _model_key(body_model_cfg) -> tuple:
+    return tuple(sorted(dataclasses.asdict(body_model_cfg).items()))
 
 
 def body_regions(body_model_cfg) -> tuple[dict[str, np.ndarray], int]:
@@ -277,10 +284,12 @@ def body_regions(body_model_cfg) -> tuple[dict[str, np.ndarray], int]:
     model setting, since building a model takes seconds and the regions never change."""
     from intercap.body_models import load_from_config
 
-    key = tuple(sorted(dataclasses.asdict(body_model_cfg).items()))
+    key = _model_key(body_model_cfg)
     if key not in _REGIONS:
         model = load_from_config(body_model_cfg, device="cpu")
         _REGIONS[key] = ({r: ids.cpu().numpy() for r, ids in model.contact_regions.items()}, model.num_vertices)
+        with torch.no_grad():  # the rest mesh (neutral shape, rest pose): the report's contact heat map
+            _REST[key] = model(model.init_params(1)).vertices[0].float().cpu().numpy()
     return _REGIONS[key]
 
 
@@ -338,7 +347,11 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     save_npz(stage_dir / "contact.npz", contact=contact, method=np.array(method), frame_ids=frame_ids,
              region_names=np.array(names), region_distance_m=distance, region_contact=touching, invalid=invalid,
              overlap_2d=overlap_2d & judged_2d, distance_3d=distance_3d & judged_3d, overlap_px=counts,
-             mask_source=np.array(mask_source), **extra)
+             mask_source=np.array(mask_source), region_vertex_ids=np.concatenate(ids).astype(np.int32),
+             region_sizes=np.array([len(i) for i in ids], np.int32),
+             rest_vertices=_REST.get(_model_key(dataclasses.replace(cfg.body_model, name=session.body_model)),
+                                     np.zeros((0, 3), np.float32)),
+             **extra)
     save_npy(stage_dir / "contact.npy", contact.astype(bool))
     publish(stage_dir / "contact.npy", out_dir / "contact.npy")
     if invalid.any():

@@ -347,13 +347,16 @@ def keypoints_path(out_dir: Path | str, camera: str, frame_id: int) -> Path:
     return Path(out_dir) / "detect" / camera / "keypoints" / f"{int(frame_id):06d}.json"
 
 
-def detect_session(session, out_dir: Path | str, detector: KeypointDetector, progress: bool = True) -> dict:
-    """Detect keypoints in every view and frame of a session and write OpenPose JSON per file.
+def detect_session(session, out_dir: Path | str, detector: KeypointDetector, progress: bool = True,
+                   only: np.ndarray | None = None) -> dict:
+    """Detect keypoints in the views and frames of a session (all, or where `only` (C, T) is True)
+    and write OpenPose JSON per file.
 
     Frames whose JSON already exists are skipped (so a stopped run resumes); a dropped colour
     frame writes nothing; an image with no person writes {"people": []}.
     Returns counts: {"written", "skipped", "dropped", "no_person"}."""
-    jobs = [(c, cam.name, int(f)) for c, cam in enumerate(session.cameras) for f in session.frame_ids]
+    jobs = [(c, cam.name, int(f)) for c, cam in enumerate(session.cameras) for t, f in enumerate(session.frame_ids)
+            if only is None or only[c, t]]
     counts = {"written": 0, "skipped": 0, "dropped": 0, "no_person": 0}
     bar = None
     if progress:
@@ -382,17 +385,22 @@ def detect_session(session, out_dir: Path | str, detector: KeypointDetector, pro
     return counts
 
 
-def session_keypoints_usable(session, cfg) -> bool:
-    """Whether the body fit reads the session's own keypoints (every camera has them, and the
-    config allows it) instead of the `detect` stage's."""
-    return cfg.detect.use_session_keypoints and all(session.has_kind("keypoints"))
+def keypoints_to_detect(session, cfg) -> np.ndarray:
+    """(C, T) bool: the views and frames the detector must fill: those without a session keypoint
+    file (a detector that crashed on some frames, an empty folder), or all when the config says so."""
+    if not cfg.detect.use_session_keypoints:
+        return np.ones((session.num_cameras, session.num_frames), bool)
+    return session.missing("keypoints")
 
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
-    """The `detect` stage: nothing to do when the session brings keypoints for every camera;
-    otherwise runs the configured detector on every view and frame into OUT/detect/."""
-    if session_keypoints_usable(session, cfg):
-        return {"keypoints": "session"}
+    """The `detect` stage: runs the configured detector into OUT/detect/ on the views and frames
+    that have no keypoints of the session's own (nothing to do when every file is there)."""
+    todo = keypoints_to_detect(session, cfg)
+    figures = {"keypoints_from_session": int(todo.size - todo.sum()), "keypoints_detected": int(todo.sum())}
+    if not todo.any():
+        return {"keypoints": "session", **figures}
     with make_detector(cfg.detect.detector) as detector:
-        counts = detect_session(session, out_dir, detector, progress=progress)
-    return {"keypoints": cfg.detect.detector, **counts}
+        counts = detect_session(session, out_dir, detector, progress=progress, only=todo)
+    source = cfg.detect.detector if todo.all() else f"session+{cfg.detect.detector}"
+    return {"keypoints": source, **figures, **counts}

@@ -48,7 +48,7 @@ from intercap.energies import losses
 from intercap.energies.motion_prior import MODEL_FPS
 from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras
-from intercap.io.files import per_frame_result, publish, save_npz
+from intercap.io.files import per_frame_result, publish, save_npz, write_json
 from intercap.stages.body import (
     PHASES,
     BodyFitter,
@@ -315,6 +315,7 @@ class GlobalFitter:
         self.prior_slots = {k: torch.tensor([position[int(v)] for v in p.point_ids.tolist()])
                             for k, p in self.priors.items()}
         self.free_bones = self.body.free_bones
+        self.gravity = None  # (3,) m/s^2 for the free-flight term; set by `run` when episodes exist
 
     # -- parameters -----------------------------------------------------------------------
     def object_pose(self, R0: torch.Tensor, c0: torch.Tensor, rotation: torch.Tensor, shift: torch.Tensor):
@@ -362,6 +363,9 @@ class GlobalFitter:
             point, normal = (x.to(vertices) for x in self.ground)
             terms["ground"] = (losses.ground_penetration(vertices, point, normal)
                                + losses.ground_penetration(object_world, point, normal))
+        if self.gravity is not None and data.flight is not None and bool((data.flight >= 0).any()):
+            times = torch.arange(len(centre), dtype=centre.dtype) / self.fps
+            terms["flight"] = losses.flight_parabola(centre, data.flight, times, self.gravity.to(centre))
         if len(vertices) >= 3:
             terms["object_acceleration"] = losses.vertex_acceleration(object_world, self.fps)
             terms["body_acceleration"] = losses.vertex_acceleration(vertices, self.fps)
@@ -437,6 +441,7 @@ class WindowData:
     object_reference: torch.Tensor  # (W, M, 3) the object's samples where the tracker put them
     object_confidence: torch.Tensor  # (W,)
     grasping: torch.Tensor  # (W, 2) float
+    flight: torch.Tensor | None = None  # (W,) long: free-flight episode id per frame, -1 outside (GraviCap)
 
 
 class Observations:
@@ -509,6 +514,13 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         per_frame.hand_distance = hand_object_distance(model, per_frame, shape)
     per_frame.grasping = per_frame.contact[:, None] & (per_frame.hand_distance < g.hand_reach_m)
     fitter = GlobalFitter(model, cameras, cfg.body, g, shape, ground, session.fps)
+    flight = free_flight(per_frame, shape, ground, session.fps, g)
+    if flight["episodes"].size and g.w_flight > 0:
+        fitter.gravity = torch.as_tensor(-9.81 * flight["up"], dtype=torch.float32)
+    if flight["figures"]["gravity_source"] == "flight":  # no floor in view: up from the object's free flight
+        write_json(stage_dir / "gravity.json", {"up": flight["figures"]["gravity_up"], "source": "flight",
+                                                "gravity_mps2": (-9.81 * flight["up"]).tolist(),
+                                                "episodes": flight["figures"]["flight_episodes"]})
     observations = Observations(session, cfg, out_dir, cameras)
 
     T = session.num_frames
@@ -532,6 +544,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         tick = time.perf_counter()
         frames = np.arange(start, end)
         data = observations.window(frames, per_frame, shape)
+        data.flight = torch.as_tensor(flight["episode_of_frame"][frames])
         body, R, centre, stats = fitter.fit_window(fitted[start:end], R_all[start:end], centre_all[start:end],
                                                    fixed, data)
         keep = slice(fixed, commit - start)
@@ -545,8 +558,48 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                  next_window=k + 1, seconds=seconds)
         bar.update(commit - (start + fixed))
     bar.close()
-    return write_outputs(session, model, fitted, R_all, centre_all, shape, per_frame, seconds, history, out_dir,
-                         observations, cameras, cfg, fitter.weight)
+    figures = write_outputs(session, model, fitted, R_all, centre_all, shape, per_frame, seconds, history, out_dir,
+                            observations, cameras, cfg, fitter.weight)
+    return {**figures, **flight["figures"]}
+
+
+def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: float, g) -> dict:
+    """The tracked object's free-flight episodes (GraviCap): frames where the contact stage sees no
+    body contact and the object's surface is clear of the ground plane, for `flight_min_frames`.
+    Gravity is -9.81 along the ground normal; with no ground plane (prepare found no floor) the up
+    direction comes from the flights themselves (`gravity_from_flight`), written to
+    OUT/global/gravity.json by the caller's metrics ("gravity_source": "flight")."""
+    from intercap.dynamics.flight import find_flight_episodes, gravity_from_flight, object_on_ground
+
+    T = len(per_frame.contact)
+    centres = per_frame.t + np.einsum("tij,j->ti", per_frame.R, shape.centroid.numpy())
+    centres = np.where(per_frame.object_valid[:, None], centres, np.nan)
+    touching = per_frame.contact.copy()
+    if ground is not None:
+        points = np.einsum("tij,mj->tmi", per_frame.R, shape.samples.numpy()) + per_frame.t[:, None]
+        touching |= object_on_ground(points, ground.point, ground.normal, g.flight_ground_margin_m)
+        up, source = np.asarray(ground.normal, np.float64), "ground"
+    else:
+        up, source = np.array([0.0, 0.0, 1.0]), "none"  # only to run the detection; replaced below
+    episodes = find_flight_episodes(centres, touching, up, fps, g.flight_min_frames)
+    figures = {"flight_episodes": episodes.tolist()}
+    if ground is None and len(episodes):
+        try:
+            fit = gravity_from_flight(centres, episodes, fps)
+            up, source = fit["up"], "flight"
+            figures.update(gravity_from_flight_g_norm=fit["g_norm"], gravity_from_flight_residual_mm=1e3 * fit["residual_m"])
+        except ValueError as error:
+            log.warning("global: %s; the free-flight term is off", error)
+            episodes = episodes[:0]
+    if ground is None and source != "flight":
+        episodes = episodes[:0]
+    figures["gravity_source"] = source
+    figures["gravity_up"] = [float(v) for v in up]
+    episode_of_frame = np.full(T, -1, np.int64)
+    for e, (a, b) in enumerate(episodes):
+        episode_of_frame[a:b + 1] = e
+    figures["flight_frames"] = int((episode_of_frame >= 0).sum())
+    return {"episodes": episodes, "up": up, "episode_of_frame": episode_of_frame, "figures": figures}
 
 
 def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectShape, per_frame: PerFrameResults,

@@ -57,6 +57,7 @@ from intercap.geometry.segmentation import (
     foreground_mask,
     uncertain_mask,
 )
+from intercap.geometry.symmetry import axis_angle_matrix
 from intercap.io.files import publish, save_npz
 
 log = logging.getLogger(__name__)
@@ -113,11 +114,8 @@ def distinct(poses: list, distance_m: float, taken: list = ()) -> list:
 
 
 def axis_rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
-    """Rotation (3, 3) by `angle_deg` about a unit `axis` (Rodrigues)."""
-    a = np.asarray(axis, np.float64) / np.linalg.norm(axis)
-    K = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-    th = np.radians(angle_deg)
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+    """Rotation (3, 3) by `angle_deg` about `axis` (any length)."""
+    return axis_angle_matrix(axis, np.radians(angle_deg))
 
 
 def hard_silhouettes(vertices_world: np.ndarray, faces: np.ndarray, cameras: Cameras, sizes) -> list[np.ndarray]:
@@ -179,7 +177,8 @@ class ObjectTracker:
         _, _, axes = np.linalg.svd(np.asarray(samples) - self.centroid, full_matrices=False)
         self.turns = [axis_rotation(a, angle) for a in axes for angle in (90, 180, 270)]  # (3, 3) in object coords
         self.sizes = [(c.height, c.width) for c in session.cameras]
-        self.use_masks = cfg.use_session_masks and all(session.has_kind("mask_object"))
+        self.session_masks = cfg.use_session_masks  # the session's mask where a view and frame has one ...
+        self.use_masks = cfg.use_session_masks and not session.missing("mask_object").any()  # ... or everywhere
         self.backgrounds = None
         self._rays: dict[int, torch.Tensor] = {}
 
@@ -215,7 +214,7 @@ class ObjectTracker:
             if depth is None:
                 continue
             depths[c, :h, :w] = depth
-            if self.use_masks:
+            if self.session_masks and self.session.has_frame(c, "mask_object", frame_id):
                 mask = self.session.read_mask(c, frame_id, "object")
                 known[c, :h, :w] = 1.0
             else:
@@ -637,8 +636,11 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         draw_overlay(session, tracker, int(session.frame_ids[i]), state["R"][i], state["t"][i],
                      stage_dir / "overlays" / f"{int(session.frame_ids[i]):06d}.jpg")
     counts = {STATUS_NAMES[s]: int((state["status"] == s).sum()) for s in (TRACKED, REINITIALISED, LOST, UNTRUSTED)}
+    images = session.num_cameras * session.num_frames
+    derived = int(session.missing("mask_object").sum()) if tracker.session_masks else images
     return {
-        "masks": "session" if tracker.use_masks else "derived",
+        "masks": "session" if derived == 0 else ("derived" if derived == images else "session+derived"),
+        "masks_derived_images": derived,
         "frames_trusted": int(valid.sum()),
         **{f"frames_{k}": v for k, v in counts.items()},
         "mean_confidence": float(state["confidence"][valid].mean()) if valid.any() else 0.0,

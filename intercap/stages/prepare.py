@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from intercap.calib.alignment import check_calibration, format_agreement
+from intercap.calib.alignment import check_calibration, format_agreement, pair_flagged
 from intercap.config import Config
 from intercap.geometry.cameras import Cameras, depth_to_point_grid, pixel_rays
 from intercap.geometry.ground import GroundPlane, fit_ground_plane, up_hint_from_cameras
@@ -28,6 +28,9 @@ from intercap.geometry.pointclouds import fuse_points
 from intercap.io.files import write_json, write_point_cloud_ply
 
 log = logging.getLogger(__name__)
+
+# What happens when no floor is found (then no ground.json is written, ground_unavailable.json says why).
+GRAVITY_FALLBACK = "gravity from the tracked object's free flight (global stage: OUT/global/gravity.json)"
 
 
 def spread_frames(frame_ids: np.ndarray, count: int) -> np.ndarray:
@@ -102,7 +105,8 @@ def estimate_ground(session, clouds: ViewClouds, cfg, progress: bool) -> tuple[G
 
 
 AGREEMENT_FIELDS = ("cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
-                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg")
+                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg",
+                    "translation_sigma_mm", "rotation_sigma_deg", "observable_dof", "significance")
 
 
 def agreement_rows(results: list, frames: int) -> list[dict]:
@@ -117,9 +121,17 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     cameras = Cameras.from_infos(session.cameras, dtype=torch.float32)
 
     clouds = ViewClouds(session, cameras, pcfg)
-    plane, source = estimate_ground(session, clouds, pcfg, progress)
-    write_json(stage_dir / "ground.json", {**plane.to_dict(), "source": source})
-    log.info("ground plane (%s): normal %s, rmse %.1f mm", source, np.round(plane.normal, 4), plane.rmse_m * 1e3)
+    try:
+        plane, source = estimate_ground(session, clouds, pcfg, progress)
+    except ValueError as error:  # no floor in view: the global stage takes up from the object's free flight
+        plane, source = None, "unavailable"
+        (stage_dir / "ground.json").unlink(missing_ok=True)
+        write_json(stage_dir / "ground_unavailable.json", {"error": str(error), "fallback": GRAVITY_FALLBACK})
+        log.warning("no ground plane (%s); %s", error, GRAVITY_FALLBACK)
+    else:
+        (stage_dir / "ground_unavailable.json").unlink(missing_ok=True)
+        write_json(stage_dir / "ground.json", {**plane.to_dict(), "source": source})
+        log.info("ground plane (%s): normal %s, rmse %.1f mm", source, np.round(plane.normal, 4), plane.rmse_m * 1e3)
 
     names = [c.name for c in session.cameras]
     centers = cameras.centers.numpy()
@@ -145,15 +157,15 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     if used_frames:
         results = check_calibration([np.concatenate(f) for f in fused], names, centers,
                                     max_distance=pcfg.icp_max_distance_m,
-                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02))
-    pairs = agreement_rows(results, used_frames)
-    flagged = [p for p in pairs if p["correction_translation_mm"] > pcfg.calib_warn_mm
-               or p["correction_rotation_deg"] > pcfg.calib_warn_deg]
+                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02),
+                                    max_sigma=pcfg.calib_warn_mm / 1000 / max(pcfg.calib_k_sigma, 1.0))
+    warn = {"warn_mm": pcfg.calib_warn_mm, "warn_deg": pcfg.calib_warn_deg, "k_sigma": pcfg.calib_k_sigma}
+    pairs = [{**row, "flagged": pair_flagged(r, **warn)} for row, r in zip(agreement_rows(results, used_frames), results)]
+    flagged = [p for p in pairs if p["flagged"]]
     write_json(stage_dir / "calibration_check.json", {"frames": [int(f) for f in checked], "pairs": pairs,
-                                                      "warn_mm": pcfg.calib_warn_mm, "flagged": flagged})
+                                                      **warn, "flagged": flagged})
     if results:
-        log.info("calibration check (clouds fused over %d frames)\n%s", used_frames,
-                 format_agreement(results, warn_mm=pcfg.calib_warn_mm, warn_deg=pcfg.calib_warn_deg))
+        log.info("calibration check (clouds fused over %d frames)\n%s", used_frames, format_agreement(results, **warn))
     for p in flagged:
         log.warning("cameras %s and %s disagree by %.1f mm / %.2f deg: check the calibration",
                     p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["correction_rotation_deg"])
@@ -161,8 +173,9 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     corrections = [p["correction_translation_mm"] for p in pairs if np.isfinite(p["correction_translation_mm"])]
     return {
         "ground_source": source,
-        "ground_rmse_mm": plane.rmse_m * 1e3,
-        "ground_inlier_ratio": plane.inlier_ratio,
+        **({"ground_fallback": GRAVITY_FALLBACK} if plane is None else {}),
+        "ground_rmse_mm": plane.rmse_m * 1e3 if plane is not None else None,
+        "ground_inlier_ratio": plane.inlier_ratio if plane is not None else None,
         "calibration_max_correction_mm": max(corrections) if corrections else None,
         "calibration_pairs_flagged": len(flagged),
     }

@@ -42,8 +42,8 @@ FLOOR_TILE = 0.5
 class SynthConfig:
     """Everything that defines a synthetic session (defaults: a full-size session)."""
 
-    script: str = "pick_place"  # pick_place | lift_drink | push_chair
-    object: str | None = None  # box | cup | chair; default: the script's own
+    script: str = "pick_place"  # pick_place | lift_drink | push_chair | toss | hold | drop (the last three: physics)
+    object: str | None = None  # box | cup | chair | block; default: the script's own
     frames: int | None = None  # None: the whole script at its natural speed; else resampled to this many
     fps: float = 30.0
     seed: int = 0
@@ -530,6 +530,74 @@ def session_yaml(cfg: SynthConfig, spec, T: int, anim) -> dict:
     return doc
 
 
+# ----------------------------------------------------------------------------- physics ground truth
+BODY_DENSITY = 1010.0  # kg/m^3, the human body's mean density
+
+
+def rest_v_for_mass(model, shape) -> np.ndarray:
+    """(V, 3) the body model's rest mesh with the session's shape (1, S) (mass from its volume)."""
+    params = model.init_params(1)
+    params.shape[:] = shape
+    with torch.no_grad():
+        return model(params).vertices[0].numpy().astype(np.float64)
+
+
+def physics_ground_truth(anim, spec, faces: np.ndarray, rest_vertices: np.ndarray, fps: float, speed: float,
+                         still_tol: float = 0.05) -> dict:
+    """What is analytic about a physics script's session (SI units, world, z up; NaN where not analytic).
+
+    Body mass M = rest mesh volume x 1010 kg/m^3; object mass m from its spec. Per frame:
+    `hand_force` (T, 3) total force of the hands on the object: m g up while held and still
+    (the object's acceleration is 0), 0 while it touches no hand; `ground_reaction` (T, 3):
+    M g + the hands' load where the body is still (its vertices' acceleration below
+    `still_tol` m/s^2) and the hand force is known; `object_ground_force` (T, 3): m g up
+    while it lies untouched on the floor, 0 in flight. `flight_episodes` (E, 2) (first, last
+    frame, inclusive) and `flight_acceleration` (E, 3) = g in session time (x speed^2)."""
+    T = len(anim.object_poses)
+    g_vec = np.array([0.0, 0.0, -9.81])
+    mesh = trimesh.Trimesh(rest_vertices, faces, process=False)
+    M = abs(float(mesh.volume)) * BODY_DENSITY
+    m = float(spec.mass_kg)
+    p = anim.object_poses[:, :3, 3]
+    R = anim.object_poses[:, :3, :3].reshape(T, 9)
+
+    def second_difference(x):  # (T, ...) -> (T,) largest |second difference| x fps^2, NaN at the ends
+        out = np.full(T, np.nan)
+        if T >= 3:
+            d = np.abs(x[2:] - 2 * x[1:-1] + x[:-2]).reshape(T - 2, -1).max(1) * fps**2
+            out[1:-1] = d
+        return out
+
+    object_still = (second_difference(p) < 1e-6) & (second_difference(R) < 1e-6)
+    object_still[1:-1] &= np.abs(p[2:] - p[:-2]).max(1) < 1e-9  # and not moving at constant speed
+    body_acc = second_difference(anim.vertices.astype(np.float64))
+    body_still = body_acc < still_tol
+    held = anim.contact.astype(bool)
+    in_flight = np.zeros(T, bool)
+    episodes = np.zeros((0, 2), np.int64)
+    if anim.flight is not None:
+        in_flight[anim.flight[0]:anim.flight[1] + 1] = True
+        episodes = np.array([anim.flight], np.int64)
+    verts = np.asarray(spec.mesh.vertices)
+    lowest = (np.einsum("tij,vj->tvi", anim.object_poses[:, :3, :3], verts)[..., 2] + p[:, 2:3]).min(1)
+    on_floor = ~held & ~in_flight & (lowest < 1e-6) & object_still
+    nan3 = np.full((T, 3), np.nan)
+    hand = nan3.copy()
+    hand[held & object_still] = -m * g_vec
+    hand[~held] = 0.0
+    ground_obj = nan3.copy()
+    ground_obj[on_floor] = -m * g_vec
+    ground_obj[in_flight] = 0.0
+    reaction = np.where((body_still & np.isfinite(hand).all(1))[:, None], -M * g_vec + hand, np.nan)
+    flight_acc = np.tile(g_vec * speed**2, (len(episodes), 1))
+    return dict(frame_ids=np.arange(T, dtype=np.int64), gravity=g_vec, body_mass_kg=np.float64(M),
+                body_density_kg_m3=np.float64(BODY_DENSITY), object_mass_kg=np.float64(m), hand_force=hand,
+                ground_reaction=reaction, object_ground_force=ground_obj, object_still=object_still,
+                body_still=body_still, body_max_acceleration=body_acc, flight_episodes=episodes,
+                flight_acceleration=flight_acc,
+                note=np.array("body mass = anny rest mesh volume x 1010 kg/m^3; NaN where not analytic"))
+
+
 # ----------------------------------------------------------------------------- the generator
 def script_times(duration: float, cfg: SynthConfig) -> tuple[np.ndarray, float]:
     """Script time (seconds) of each frame and the speed factor (1 = natural speed)."""
@@ -661,6 +729,11 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
         "props": [name for name, _, _ in anim.props],
     })
     write_json(gt / "ground.json", {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]})  # the floor, z up
+    from intercap.synth.motions import PHYSICS_SCRIPTS
+
+    if script.name in PHYSICS_SCRIPTS:
+        save_npz_deterministic(gt / "physics.npz", **physics_ground_truth(anim, spec, faces, rest_v_for_mass(model, anim.params.shape[:1]),
+                                                                          cfg.fps, speed))
 
     for c in cams:
         for sub in ["color", "depth"] + (["keypoints"] if cfg.keypoints else []) + (
@@ -716,8 +789,10 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     d = SynthConfig()
     parser.add_argument("out", metavar="OUT", help="session folder to write")
     parser.add_argument("--preset", choices=sorted(PRESETS), help="a named set of defaults (sample: the committed sample session)")
-    parser.add_argument("--script", choices=["pick_place", "lift_drink", "push_chair"], default=None)
-    parser.add_argument("--object", choices=["box", "cup", "chair"], default=None, help="default: the script's object")
+    parser.add_argument("--script", choices=["pick_place", "lift_drink", "push_chair", "toss", "hold", "drop"],
+                        default=None, help="toss, hold, drop: known physics (ground_truth/physics.npz)")
+    parser.add_argument("--object", choices=["box", "cup", "chair", "block"], default=None,
+                        help="default: the script's object")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (default: whole script at natural speed)")
     parser.add_argument("--fps", type=float, default=None)
     parser.add_argument("--seed", type=int, default=None)

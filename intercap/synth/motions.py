@@ -38,7 +38,9 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from intercap.synth.objects import ObjectSpec, SdfGrid, SurfaceDistance
 
-SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair")
+SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop")
+PHYSICS_SCRIPTS = ("toss", "hold", "drop")  # scripts with analytic physics (ground_truth/physics.npz)
+GRAVITY = 9.81  # m/s^2 along the generator's up (+z)
 
 # Bones the IK may move, with the weight of their pull back to the scripted pose.
 IK_BONES = {
@@ -96,6 +98,9 @@ class Script:
     object_keys: list
     contact: tuple
     props: list = field(default_factory=list)
+    # free flight: ("catch", t_release, t_catch) thrown and caught again, or ("drop", t_release)
+    # falling onto the floor; the object follows an exact parabola under GRAVITY in between
+    flight: tuple | None = None
 
 
 def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
@@ -223,8 +228,50 @@ def push_chair() -> Script:
                   walk_keys, reach_keys, gap_keys, close_keys, object_keys, contact=("grasp", "push"))
 
 
+def toss() -> Script:
+    """Stand holding a small block in both hands at chest height, dip, throw it straight up and
+    catch it 0.5 s later (15 frames of free flight at 30 fps: an exact parabola), hold it."""
+    phases = {"hold": (0.0, 0.5), "windup": (0.5, 1.0), "flight": (1.0, 1.5), "catch": (1.5, 2.45)}  # held at the end
+    carry = _hold(elbow=1.3, forward=0.35)
+    pose_keys = [(0.0, carry), (2.4, carry)]
+    reach_keys = [(0.0, 1.0), (2.4, 1.0)]
+    gap_keys = [(0.0, 0.0), (1.0, 0.0), (1.1, 0.04), (1.4, 0.04), (1.5, 0.0)]  # palms open off the block in flight
+    close_keys = [(0.0, 1.0), (1.0, 1.0), (1.08, 0.0), (1.42, 0.0), (1.5, 1.0)]
+    held = _rel(0.0, 0.38, 1.0)
+    low = _rel(0.0, 0.38, 0.92)
+    object_keys = [ObjectKey(0.0, "body", held), ObjectKey(0.5, "body", held), ObjectKey(0.75, "body", low),
+                   ObjectKey(1.0, "body", held), ObjectKey(2.4, "body", held)]
+    return Script("toss", 2.4, phases, "block", ("left", "right"), pose_keys, [(0.0, 0.0)], [(0.0, 0.0)],
+                  [(0.0, 0.0)], reach_keys, gap_keys, close_keys, object_keys, contact=("hold", "catch"),
+                  flight=("catch", 1.0, 1.5))
+
+
+def hold() -> Script:
+    """Stand still holding a box (known mass) in both hands in front of the body."""
+    phases = {"hold": (0.0, 2.05)}  # past the end: the last frame is held too
+    carry = _hold(elbow=1.3, forward=0.35)
+    held = _rel(0.0, 0.40, 0.95)
+    return Script("hold", 2.0, phases, "box", ("left", "right"), [(0.0, carry)], [(0.0, 0.0)], [(0.0, 0.0)],
+                  [(0.0, 0.0)], [(0.0, 1.0)], [(0.0, 0.0)], [(0.0, 1.0)], [ObjectKey(0.0, "body", held)],
+                  contact=("hold", "hold"))
+
+
+def drop() -> Script:
+    """Stand holding a box in front of the body, open the hands and let it fall onto the floor
+    (free fall from rest: an exact parabola until it lands flat), lower the arms."""
+    phases = {"hold": (0.0, 0.6), "fall": (0.6, 2.0)}
+    carry = _hold(elbow=1.3, forward=0.35)
+    pose_keys = [(0.0, carry), (0.6, carry), (1.4, ARMS_RELAXED)]
+    held = _rel(0.0, 0.40, 0.95)
+    return Script("drop", 2.0, phases, "box", ("left", "right"), pose_keys, [(0.0, 0.0)], [(0.0, 0.0)],
+                  [(0.0, 0.0)], [(0.0, 1.0), (0.6, 1.0), (1.1, 0.0)], [(0.0, 0.0), (0.6, 0.0), (0.7, 0.06)],
+                  [(0.0, 1.0), (0.6, 1.0), (0.7, 0.0)], [ObjectKey(0.0, "body", held)], contact=("hold", "hold"),
+                  flight=("drop", 0.6))
+
+
 def get_script(name: str) -> Script:
-    scripts = {"pick_place": pick_place, "lift_drink": lift_drink, "push_chair": push_chair}
+    scripts = {"pick_place": pick_place, "lift_drink": lift_drink, "push_chair": push_chair, "toss": toss,
+               "hold": hold, "drop": drop}
     if name not in scripts:
         raise ValueError(f"unknown script {name!r}; choose one of {SCRIPT_NAMES}")
     return scripts[name]()
@@ -423,6 +470,43 @@ def object_track(script: Script, frames: dict, times: np.ndarray, scale: float =
         nxt = min(k + 1, len(keys) - 1)
         out[sel] = interpolate_poses(anchors[k][sel], anchors[nxt][sel], w[sel])
     return out
+
+
+def flight_track(script: Script, plan: np.ndarray, times: np.ndarray, half_height: float):
+    """The object's poses (T, 4, 4) with the script's free flight put into the planned track
+    `plan` (where the hands hold it), and the flight's (first, last) frame (inclusive) or None.
+
+    The flight leaves the plan at the last frame r at or before the release time. "catch":
+    it rejoins the plan at the first frame c at or after the catch time; in between the
+    centre follows p(t) = p_r + v0 (t - t_r) - 0.5 GRAVITY (t - t_r)^2 z with v0 chosen to
+    meet p_c, the rotation turns at a constant rate from R_r to R_c. "drop": it falls from
+    rest, R held, until its centre is `half_height` above the floor, then lies there."""
+    out = plan.copy()
+    kind, t_release = script.flight[0], script.flight[1]
+    r = int(np.flatnonzero(times <= t_release + 1e-9)[-1])
+    acc = np.array([0.0, 0.0, -GRAVITY])
+    p_r = plan[r, :3, 3]
+    if kind == "catch":
+        c = int(np.flatnonzero(times >= script.flight[2] - 1e-9)[0])
+        span = times[c] - times[r]
+        v0 = (plan[c, :3, 3] - p_r) / span - 0.5 * acc * span
+        sel = np.arange(r + 1, c)
+        dt = times[sel] - times[r]
+        out[sel, :3, 3] = p_r + dt[:, None] * v0 + 0.5 * dt[:, None] ** 2 * acc
+        w = dt / span
+        R_r, R_c = Rotation.from_matrix(plan[r, :3, :3]), Rotation.from_matrix(plan[c, :3, :3])
+        out[sel, :3, :3] = (R_r * Rotation.from_rotvec((R_r.inv() * R_c).as_rotvec() * w[:, None])).as_matrix()
+        return out, ((int(sel[0]), int(sel[-1])) if len(sel) else None)
+    if kind != "drop":
+        raise ValueError(f"script {script.name}: unknown flight kind {kind!r}")
+    landing = times[r] + np.sqrt(2 * max(p_r[2] - half_height, 0.0) / GRAVITY)
+    sel = np.flatnonzero(times > times[r] + 1e-9)
+    dt = np.minimum(times[sel], landing) - times[r]
+    out[sel, :3, :3] = plan[r, :3, :3]
+    out[sel, :3, 3] = p_r + 0.5 * dt[:, None] ** 2 * acc
+    out[sel[times[sel] >= landing], 2, 3] = half_height  # lies flat on the floor (no rounding below it)
+    falling = sel[times[sel] < landing]
+    return out, ((int(falling[0]), int(falling[-1])) if len(falling) else None)
 
 
 # ----------------------------------------------------------------------------- hands
@@ -746,6 +830,7 @@ class Animation:
     hand_gap: dict  # measured hand-to-object distances in contact frames
     hand_distance: np.ndarray = None  # (T,) closest grasping-hand vertex to the object surface, metres
     timings: dict = field(default_factory=dict)  # seconds per stage
+    flight: tuple | None = None  # (first, last) frame of the object's free flight, inclusive
 
 
 def hand_object_gap(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj_poses: np.ndarray, contact: np.ndarray,
@@ -857,10 +942,13 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     head[:, :3, 3] = np.einsum("tij,tj->ti", R, local.keypoints[:, 0].numpy()) + transl  # the nose, scripted pose
     obj_poses = object_track(script, {"body": heading, "head": head}, times, scale=stature / 1.625,
                              half_height=spec.half_height)
+    plan, flight = obj_poses, None
+    if script.flight is not None:  # the hands keep to the plan; the object flies
+        obj_poses, flight = flight_track(script, plan, times, spec.half_height)
     sdf = SdfGrid(spec.mesh)
     reach = eased_scalar(script.reach_keys, times)
     gap = eased_scalar(script.gap_keys, times)
-    targets = grasp_targets(script, spec, obj_poses, gap)
+    targets = grasp_targets(script, spec, plan, gap)
     clock["placement"] = time.perf_counter()
     params.body_pose = coarse_to_fine_ik(model, params, targets, reach, geom, sdf, obj_poses, times, solve_rate_hz,
                                          ik_iters, polish_iters)
@@ -869,6 +957,8 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     # 5: fingers close onto the object during contact, open (relaxed) otherwise.
     c0, c1 = contact_interval(script)
     contact = (times >= c0) & (times < c1)
+    if flight is not None:
+        contact[flight[0]:flight[1] + 1] = False
     closure = eased_scalar(script.close_keys, times)
     sides = [SIDES[h] for h in script.hands]
     frames = np.flatnonzero(contact)
@@ -886,6 +976,10 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
             curls[torch.as_tensor(frames)], thumb[torch.as_tensor(frames)] = grip[s]
             curls[:first], thumb[:first] = grip[s][0][0], grip[s][1][0]
             curls[last + 1:], thumb[last + 1:] = grip[s][0][-1], grip[s][1][-1]
+            unheld = np.setdiff1d(np.arange(first, last + 1), frames)
+            if unheld.size:  # free flight between two holds: the grip of the frame before it
+                before = torch.as_tensor(frames[np.searchsorted(frames, unheld) - 1])
+                curls[torch.as_tensor(unheld)], thumb[torch.as_tensor(unheld)] = curls[before], thumb[before]
             # relaxed -> open (fingers stretched, as the hand nears) -> grip (as it closes)
             opened = torch.clamp(curls.min(0).values, max=0.0) - 0.1  # (5,)
             shape = relaxed_curl + k_reach * (opened - relaxed_curl) + k_close * (curls - opened)
@@ -912,4 +1006,4 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     names = list(clock)
     timings = {b: clock[b] - clock[a] for a, b in zip(names[:-1], names[1:])}
     return Animation(params.detach(), vertices, keypoints, obj_poses, contact, props, phase_frames, gaps, distance,
-                     timings)
+                     timings, flight)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-OBJECT_NAMES = ("box", "cup", "chair")
+OBJECT_NAMES = ("box", "cup", "chair", "block")
 
 
 @dataclass(frozen=True)
@@ -139,6 +139,17 @@ def make_object(name: str) -> ObjectSpec:
             "left": Grasp((-hw + 0.02, -hd + 0.02, top), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
         }
         spec = dict(color=(60, 110, 190), mass_kg=4.5, radius=0.08)
+        contact_points = [g.point for g in grasps.values()]
+        contact_normals = [g.normal for g in grasps.values()]
+    elif name == "block":
+        # A small wooden block (tossed and caught): palms on its two short ends, fingers forward.
+        mesh = _box_mesh((0.16, 0.10, 0.08), max_edge=0.02)
+        hx = mesh.bounds[1, 0]
+        grasps = {
+            "right": Grasp((hx, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+            "left": Grasp((-hx, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+        }
+        spec = dict(color=(214, 170, 60), mass_kg=0.5, radius=0.06)
         contact_points = [g.point for g in grasps.values()]
         contact_normals = [g.normal for g in grasps.values()]
     else:

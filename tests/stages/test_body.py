@@ -160,13 +160,14 @@ def test_missing_keypoint_views_and_depth_still_fit(model, sample):
 
 
 def test_stage_marks_frames_without_evidence(sample, tmp_path):
-    """Frame 1 loses every view's keypoints and depth: it is written as NaN and flagged; the others fit."""
+    """Frame 1 loses every view's colour, keypoints and depth: nothing is left to detect keypoints in, so
+    it is written as NaN and flagged; the others fit."""
     broken = trimmed_copy(sample, tmp_path / "session", FRAMES)
     for cam in ("cam0", "cam1", "cam2", "cam3"):
-        (broken / cam / "keypoints" / "000001.json").unlink()
-        (broken / cam / "depth" / "000001.png").unlink()
+        for kind in ("keypoints/000001.json", "depth/000001.png", "color/000001.jpg"):
+            (broken / cam / kind).unlink()
     out = tmp_path / "out"
-    metrics = run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2"]), stages=["body"],
+    metrics = run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2"]), stages=["detect", "body"],
                            progress=False)["body"]
     assert metrics["frames_fitted"] == FRAMES - 1
     saved = np.load(out / "body_params.npz")
@@ -187,7 +188,8 @@ def test_stage_marks_frames_without_evidence(sample, tmp_path):
     progress["done"][2:] = False
     np.savez(out / "body" / "progress.npz", **progress)
     (out / "body" / "DONE.json").unlink()
-    run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2"]), stages=["body"], progress=False)
+    run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2"]), stages=["detect", "body"],
+                 progress=False)
     assert np.allclose(np.load(out / "keypoints3d.npy"), keypoints, atol=1e-4, equal_nan=True)
 
 

@@ -290,3 +290,30 @@ def test_mediapipe_face_points_are_in_ibug_layout(holistic):
     assert y[27] < y[30] < y[33] < y[51] < y[62] < y[57] < y[8]  # nose down, mouth, chin
     assert x[48] < x[51] < x[54] and abs(x[51] - x[30]) < 10  # mouth centred under the nose
     assert np.linalg.norm(face[30, :2] - truth[0]) < 15  # nose tip on the body model's nose
+
+
+def test_detect_fills_only_the_views_and_frames_without_session_keypoints(tiny_session, tmp_path, monkeypatch):
+    """A detector that crashed on some frames, or an empty folder: those views and frames are detected,
+    the session's own files are used everywhere else (never 'every frame lost')."""
+    import contextlib
+
+    from intercap.config import load_config
+    from intercap.stages.body import KeypointSource
+
+    (tiny_session / "cam0" / "keypoints" / "000001.json").unlink()  # cam0 lacks frame 1
+    (tiny_session / "cam1" / "keypoints").mkdir()  # cam1: an empty folder counts as absent
+    session = Session.load(tiny_session)
+    assert session.has_kind("keypoints") == [True, False]
+    fake = FakeDetector()
+    monkeypatch.setattr(detect, "make_detector", lambda name, **kw: contextlib.nullcontext(fake))
+    out = tmp_path / "out"
+    figures = detect.run(session, load_config(), out, progress=False)
+    assert figures["keypoints"] == "session+mediapipe"
+    assert figures["keypoints_detected"] == 4 and figures["keypoints_from_session"] == 2 and fake.calls == 4
+    assert not keypoints_path(out, "cam0", 0).exists() and keypoints_path(out, "cam0", 1).exists()
+    (out / "detect" / "DONE.json").write_text("{}")
+    source = KeypointSource(session, out)
+    assert np.array_equal(source.read(0, 0), session.read_keypoints(0, 0))  # the session's own file
+    detected = source.read(0, 1)
+    assert detected[0, 1] == 0 and detected[24, 1] == 24  # the fake detector's keypoints
+    assert source.read(1, 2) is not None

@@ -1,0 +1,101 @@
+"""The `physics` stage on analytic cases written without rendering (intercap.synth.physics_cases):
+a still anny body standing on the floor and holding a box of known mass, with 2 mm noise."""
+import shutil
+
+import numpy as np
+import pytest
+
+from intercap.config import Config
+from intercap.io.files import write_json
+from intercap.pipeline import run_pipeline
+from intercap.session import Session
+from intercap.stages import physics
+from intercap.synth.physics_cases import write_static_hold, write_tiny_camera_session
+
+T = 30
+G = 9.81
+CONTRACT = {"frame_ids": (T,), "gravity": (3,), "body_mass_kg": (), "object_mass_kg": (), "hand_force": (T, 2, 3),
+            "hand_torque": (T, 2, 3), "foot_force": (T, 2, 3), "foot_cop": (T, 2, 3), "object_ground_force": (T, 3),
+            "residual_force": (T, 3), "residual_torque": (T, 3), "object_residual_force": (T, 3), "valid": (T,)}
+
+
+@pytest.fixture(scope="module")
+def model():
+    return physics.body_model(Config().body_model)
+
+
+@pytest.fixture(scope="module")
+def hold(tmp_path_factory, model):
+    root = tmp_path_factory.mktemp("hold")
+    session = write_tiny_camera_session(root / "session", T, object_mass_kg=2.0)
+    write_static_hold(model, root / "out", T, noise_m=0.002, noise_rad=0.002)
+    figures = physics.analyse(root / "out", Session.load(session))
+    return root, figures, dict(np.load(root / "out" / "physics" / "physics.npz"))
+
+
+def test_static_hold_forces_match_the_truth(hold):
+    _, figures, z = hold
+    for key, shape in CONTRACT.items():
+        assert z[key].shape == shape, key
+    J = len(z["joint_names"])
+    assert z["joint_torque"].shape == (T, J, 3) and J == 104
+    assert z["flight_episodes"].shape == (0, 2) and z["flight_acceleration"].shape == (0, 3)
+    assert z["valid"].all()
+    assert np.allclose(z["gravity"], [0, 0, -G])
+    m, M = float(z["object_mass_kg"]), float(z["body_mass_kg"])
+    assert m == 2.0 and 40 < M < 80  # from the rest mesh's volume
+    hands = z["hand_force"].sum(1)  # (T, 3) by the hands on the box
+    ground = z["foot_force"].sum(1)
+    hand_err = np.linalg.norm(hands - [0, 0, m * G], axis=1) / (m * G)
+    ground_err = np.linalg.norm(ground - [0, 0, (M + m) * G], axis=1) / ((M + m) * G)
+    assert hand_err.max() < 0.05, hand_err
+    assert ground_err.max() < 0.05, ground_err
+    assert figures["residual_root_force_pct_bw_mean"] < 1.0  # a still body on two flat feet is explained
+    assert figures["friction_cone_violation_pct"] == 0.0
+    assert figures["object_forces"] == "solved"
+    # each foot carries about half, its centre of pressure under the foot
+    assert np.all(np.abs(z["foot_force"][:, :, 2] / ((M + m) * G) - 0.5) < 0.1)
+    assert np.allclose(z["foot_cop"][..., 2], 0) and np.all(np.sign(z["foot_cop"][:, :, 0]) == [1, -1])
+    # the elbow holds the forearm, hand and half the box: tens of N m, not zero nor thousands
+    elbow = list(z["joint_names"]).index("lowerarm01.L")
+    assert 0.5 < np.linalg.norm(z["joint_torque"][:, elbow], axis=1).mean() < 30
+
+
+def test_missing_object_mass_skips_object_forces(tmp_path, model):
+    session = write_tiny_camera_session(tmp_path / "session", T, object_mass_kg=None)
+    write_static_hold(model, tmp_path / "out", T)
+    figures = physics.analyse(tmp_path / "out", Session.load(session))
+    assert figures["object_forces"].startswith("skipped") and "neither object.mass_kg" in figures["object_forces"]
+    assert figures["object_mass_kg"] is None
+    z = np.load(tmp_path / "out" / "physics" / "physics.npz")
+    assert np.isnan(z["object_mass_kg"]) and np.isnan(z["hand_force"]).all()
+    assert np.isfinite(z["foot_force"]).all() and z["valid"].all()  # the body is still analysed
+
+
+def test_missing_ground_is_a_clear_error(tmp_path, model):
+    session = write_tiny_camera_session(tmp_path / "session", T, ground=False)
+    write_static_hold(model, tmp_path / "out", T, ground_json=False)
+    with pytest.raises(physics.PhysicsError, match="no ground plane"):
+        physics.analyse(tmp_path / "out", Session.load(session))
+    assert not (tmp_path / "out" / "physics" / "physics.npz").exists()
+    # with up found from free flight by the global stage, the floor goes under the lowest sole point
+    write_json(tmp_path / "out" / "global" / "gravity.json", {"up": [0.0, 0.0, 1.0], "source": "flight"})
+    figures = physics.analyse(tmp_path / "out", Session.load(session))
+    assert figures["ground_source"].startswith("flight") and figures["ground_penetration_mm_max"] < 5
+    z = np.load(tmp_path / "out" / "physics" / "physics.npz")
+    assert np.allclose(z["gravity"], [0, 0, -G]) and np.all(z["foot_force"][:, :, 2] > 100)
+
+
+def test_stage_in_the_runner_with_given_body_mass(tmp_path, hold, model):
+    root, _, _ = hold
+    shutil.copytree(root / "out", tmp_path / "out")
+    session = write_tiny_camera_session(tmp_path / "session", T, object_mass_kg=None, density=500.0, body_mass_kg=70.0)
+    metrics = run_pipeline(session, tmp_path / "out", stages=["physics"], progress=False)
+    assert (tmp_path / "out" / "physics" / "DONE.json").exists()
+    fig = metrics["physics"]
+    assert fig["body_mass_kg"] == 70.0 and fig["body_mass_source"] == "session.yaml body.mass_kg"
+    m = 500.0 * 0.2 * 0.15 * 0.15  # the box's volume x density
+    assert fig["object_mass_kg"] == pytest.approx(m)
+    z = np.load(tmp_path / "out" / "physics" / "physics.npz")
+    ground = z["foot_force"].sum(1)[:, 2]
+    assert np.abs(ground / ((70 + m) * G) - 1).max() < 0.05

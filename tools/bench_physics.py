@@ -1,0 +1,131 @@
+"""Benchmark of the `physics` stage (issue 14).
+
+    OMP_NUM_THREADS=1 python -m tools.bench_physics [--frames 90] [--skip-filters]
+
+1. Filter choice (intercap.dynamics.kinematics): acceleration error (m/s^2, RMS over all frames and
+   over the interior) of each filter on noisy synthetic trajectories: 2 mm white noise at 30 fps on
+   human-like motions (sums of 0.3-3 Hz sinusoids of a few cm, a free-flight parabola, a still point).
+2. Static hold with Kinect-like noise (intercap.synth.physics_cases): hand force sum vs m g and
+   ground reaction vs (M + m) g (%, mean and worst frame), residual root force (% body weight),
+   stage speed (s/frame without and with the body model's construction), peak RSS.
+3. Toss / hold / drop sessions of the synthetic generator, when given (`--results OUT...`: results
+   folders of `intercap run` on those sessions): their physics figures from metrics.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from intercap.dynamics import kinematics as kin
+
+G = 9.81
+
+
+def test_trajectories(rng, fps: float, T: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, positions (T, 3), true accelerations (T, 3)) of a few motion kinds."""
+    t = np.arange(T) / fps
+    out = []
+    for k in range(6):  # human-like: sums of sinusoids, acceleration up to ~2 m/s^2 each (trunk: slow, limbs: faster)
+        x, a = np.zeros((T, 3)), np.zeros((T, 3))
+        top = 1.5 if k < 3 else 3.0
+        for _ in range(4):
+            f = rng.uniform(0.2, top)
+            amp = np.minimum(rng.uniform(0.01, 0.05, 3) / f**2, 0.15)
+            ph = rng.uniform(0, 2 * np.pi, 3)
+            w = 2 * np.pi * f
+            x += amp * np.sin(w * t[:, None] + ph)
+            a += -amp * w**2 * np.sin(w * t[:, None] + ph)
+        out.append((("trunk" if k < 3 else "limb") + str(k), x, a))
+    g = np.array([0, 0, -G])
+    out.append(("flight", np.outer(t, [0.5, 0.1, 3.5]) + 0.5 * np.outer(t**2, g), np.tile(g, (T, 1))))
+    out.append(("still", np.zeros((T, 3)), np.zeros((T, 3))))
+    return out
+
+
+def bench_filters(fps: float = 30.0, T: int = 90, noise_m: float = 0.002, seed: int = 0) -> list[dict]:
+    rng = np.random.default_rng(seed)
+    cases = test_trajectories(rng, fps, T)
+    candidates = [("none", {}), ("adaptive", {"order": 3}), ("adaptive", {"order": 2})]
+    candidates += [("butterworth", {"cutoff_hz": c}) for c in (3.0, 6.0, 10.0)]
+    candidates += [("savgol", {"window_s": w, "order": o}) for w in (0.3, 0.5, 0.7, 1.0) for o in (2, 3, 4, 5)]
+    rows = []
+    for method, kw in candidates:
+        errs, inner, kinds = [], [], {}
+        for _ in range(5):
+            for name, x, a in cases:
+                noisy = x + rng.normal(0, noise_m, x.shape)
+                _, _, est = kin.derivatives(noisy, fps, method, **kw)
+                e = np.linalg.norm(est - a, axis=1)
+                errs.append(e)
+                inner.append(e[10:-10])
+                kinds.setdefault(name.rstrip("0123456789"), []).append(e)
+        rows.append({"filter": method, **kw, "acc_rms_all": float(np.sqrt(np.mean(np.concatenate(errs) ** 2))),
+                     "acc_rms_interior": float(np.sqrt(np.mean(np.concatenate(inner) ** 2))),
+                     **{f"rms_{k}": float(np.sqrt(np.mean(np.concatenate(v) ** 2))) for k, v in kinds.items()}})
+    return rows
+
+
+def bench_static_hold(frames: int, noise_m: float = 0.002, noise_rad: float = 0.002) -> dict:
+    from intercap.config import Config
+    from intercap.session import Session
+    from intercap.stages import physics
+    from intercap.synth.physics_cases import write_static_hold, write_tiny_camera_session
+
+    tick = time.perf_counter()
+    model = physics.body_model(Config().body_model)
+    build = time.perf_counter() - tick
+    out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        root = Path(tmp)
+        m = 2.0
+        session = write_tiny_camera_session(root / "session", frames, object_mass_kg=m)
+        write_static_hold(model, root / "out", frames, noise_m=noise_m, noise_rad=noise_rad)
+        tick = time.perf_counter()
+        figures = physics.analyse(root / "out", Session.load(session))
+        seconds = time.perf_counter() - tick
+        z = np.load(root / "out" / "physics" / "physics.npz")
+        M = float(z["body_mass_kg"])
+        hands = np.linalg.norm(z["hand_force"].sum(1) - [0, 0, m * G], axis=1) / (m * G) * 100
+        ground = np.linalg.norm(z["foot_force"].sum(1) - [0, 0, (M + m) * G], axis=1) / ((M + m) * G) * 100
+        out = {"frames": frames, "noise_mm": noise_m * 1000, "body_mass_kg": M,
+               "hand_force_err_pct_mean": float(hands.mean()), "hand_force_err_pct_max": float(hands.max()),
+               "ground_reaction_err_pct_mean": float(ground.mean()), "ground_reaction_err_pct_max": float(ground.max()),
+               "residual_root_force_pct_bw_mean": figures["residual_root_force_pct_bw_mean"],
+               "residual_root_force_pct_bw_p95": figures["residual_root_force_pct_bw_p95"],
+               "friction_cone_violation_pct": figures["friction_cone_violation_pct"],
+               "foot_skating_mm_s": figures["foot_skating_mm_s"],
+               "stage_s_per_frame": seconds / frames, "stage_s_per_frame_with_model_build": (seconds + build) / frames}
+    return out
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--frames", type=int, default=90)
+    ap.add_argument("--skip-filters", action="store_true")
+    ap.add_argument("--results", nargs="*", default=[], help="results folders of toss/hold/drop runs")
+    args = ap.parse_args(argv)
+    if not args.skip_filters:
+        print("filter choice: acceleration error on 2 mm noise at 30 fps (m/s^2)")
+        rows = sorted(bench_filters(), key=lambda r: r["acc_rms_all"])
+        for r in rows:
+            name = r["filter"] + "".join(f" {k}={v}" for k, v in r.items() if k in ("cutoff_hz", "window_s", "order"))
+            kinds = "  ".join(f"{k[4:]} {v:5.2f}" for k, v in r.items() if k.startswith("rms_"))
+            print(f"  {name:32s} all {r['acc_rms_all']:5.2f}  interior {r['acc_rms_interior']:5.2f}  | {kinds}")
+    hold = bench_static_hold(args.frames)
+    print("static hold, Kinect-like noise (2 mm, 0.11 deg):")
+    for k, v in hold.items():
+        print(f"  {k:40s} {v:.4g}")
+    for folder in args.results:
+        metrics = json.loads((Path(folder) / "metrics.json").read_text()).get("physics", {})
+        print(f"{folder}: " + ", ".join(f"{k}={v:.3g}" for k, v in metrics.items() if isinstance(v, (int, float))))
+    print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB")
+
+
+if __name__ == "__main__":
+    main()

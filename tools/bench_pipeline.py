@@ -1,0 +1,144 @@
+"""Benchmark of the whole pipeline at capture rate: the number users quote.
+
+A synthetic session is generated (`intercap.synth.generator`; 30 fps, the pick_place script at
+natural speed = 219 frames, 4 views, 640x576 by default), every built stage runs with default
+settings (`run_pipeline`, as `intercap run` does), and the bench prints:
+  * per-stage seconds per frame (OUT/metrics.json) and the total (sum of stages, and the whole
+    run's wall clock including model loading),
+  * peak RSS of the pipeline (this process: the session is generated in a child process so that
+    its memory does not count; the generator's own peak is printed beside it),
+  * the accuracy table of `intercap eval` against the session's ground truth (body surface, MPJPE,
+    hands, object ADD(-S), penetration, contact).
+
+    python -m tools.bench_pipeline [--frames 150] [--width 640 --height 576] [--cameras 4] [--fps 30]
+                                   [--keep DIR] [--set SECTION.KEY=VALUE ...] [--profile]
+
+Quick check: `--frames 30 --width 320 --height 288` (30 frames resample the script: 7x faster
+motion than capture rate, so accuracy is not comparable with the full-size figures).
+--keep DIR keeps (and reuses) the generated session there; the pipeline is always redone.
+--profile wraps the pipeline in pyinstrument (when installed) and prints its top entries
+(self time); with --keep the full tree goes to OUT/profile.txt.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+KEY_ACCURACY = [("body_surface_mm", "surface mm"), ("keypoint_mpjpe_mm", "MPJPE mm"), ("hand_keypoint_mm", "hands mm"),
+                ("object_adds_mm", "ADD-S mm"), ("object_add_mm", "ADD mm"), ("object_rotation_deg", "rot deg"),
+                ("penetration_mean_mm", "pen. mm"), ("contact_accuracy_pct", "contact %")]
+
+
+def make_session(path: Path, synth: dict) -> float:
+    """Generate the session in a child process (its memory stays out of the pipeline's peak RSS);
+    returns the child's peak RSS in MB (0 when the session was already there)."""
+    if (path / "session.yaml").exists() and (path / "ground_truth").is_dir():
+        return 0.0
+    code = ("import json, sys; from intercap.synth.generator import SynthConfig, generate_session; "
+            "generate_session(SynthConfig(**json.loads(sys.argv[1])), sys.argv[2])")
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    subprocess.run([sys.executable, "-c", code, json.dumps(synth), str(path)], check=True)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return max(after, before) / 1024
+
+
+def run(session: Path, out: Path, overrides: list[str], profile: bool) -> tuple[dict, float, float, str | None]:
+    """(metrics.json, wall seconds, CPU seconds, profile summary or None) of the full pipeline, default stages."""
+    from intercap.config import load_config
+    from intercap.pipeline import run_pipeline
+
+    cfg = load_config(overrides=["run.force=true", *overrides])
+    profiler = None
+    if profile:
+        try:
+            from pyinstrument import Profiler
+        except ImportError:
+            print("--profile: pyinstrument is not installed (pip install pyinstrument); running without it")
+        else:
+            profiler = Profiler(interval=0.01)  # a coarse 10 ms sampling: the run takes minutes, overhead stays low
+            profiler.start()
+    start, cpu0 = time.perf_counter(), time.process_time()
+    metrics = run_pipeline(session, out, cfg, progress=False)
+    wall, cpu = time.perf_counter() - start, time.process_time() - cpu0
+    summary = None
+    if profiler is not None:
+        profiler.stop()
+        (out / "profile.txt").write_text(profiler.output_text(unicode=False, color=False))
+        flat = profiler.output_text(unicode=False, color=False, flat=True)
+        summary = "\n".join(flat.splitlines()[:40])
+    return metrics, wall, cpu, summary
+
+
+def fmt(value, digits=1) -> str:
+    return "-" if not isinstance(value, (int, float)) or value != value else f"{value:.{digits}f}"
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--frames", type=int, default=0, help="frames spanning the script; 0: natural speed at --fps")
+    parser.add_argument("--fps", type=float, default=30.0)
+    parser.add_argument("--width", type=int, default=640)
+    parser.add_argument("--height", type=int, default=576)
+    parser.add_argument("--cameras", type=int, default=4)
+    parser.add_argument("--script", default="pick_place", help="pick_place | lift_drink | push_chair")
+    parser.add_argument("--keep", type=Path, help="keep (and reuse) the session and the results here")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
+    parser.add_argument("--profile", action="store_true", help="profile with pyinstrument (if installed)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+    synth = {"script": args.script, "frames": args.frames or None, "fps": args.fps, "cameras": args.cameras,
+             "width": args.width, "height": args.height, "quiet": True}
+    work = args.keep or Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
+    tag = f"{args.script}_{args.frames or 'natural'}f_{args.fps:g}fps_{args.cameras}v_{args.width}x{args.height}"
+    session, out = work / tag, work / f"{tag}_out"
+    try:
+        start = time.perf_counter()
+        synth_mb = make_session(session, synth)
+        synth_s = time.perf_counter() - start
+        metrics, wall, cpu, profile = run(session, out, args.set, args.profile)
+        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # before evaluation adds its own
+        from intercap.evaluation.evaluate import evaluate
+        from intercap.evaluation.table import format_table
+
+        result = evaluate(out, session)
+    finally:
+        if args.keep is None:
+            shutil.rmtree(work, ignore_errors=True)
+
+    T = result.metrics.get("frames") or 1
+    threads = os.environ.get("OMP_NUM_THREADS", "default")
+    print(f"\nwhole pipeline on {tag}: {T} frames, {args.cameras} views, OMP_NUM_THREADS={threads}, "
+          f"{os.cpu_count()} CPUs seen (session generated in {synth_s:.0f} s)")
+    print(f"{'stage':10s} {'s/frame':>8s} {'seconds':>8s}")
+    for stage, figures in metrics.items():
+        print(f"{stage:10s} {figures.get('seconds_per_frame', float('nan')):8.3f} {figures.get('seconds', float('nan')):8.1f}")
+    stage_sum = sum(f.get("seconds_per_frame", 0.0) for f in metrics.values())
+    print(f"{'total':10s} {stage_sum:8.3f} {stage_sum * T:8.1f}   (stages)")
+    print(f"{'wall':10s} {wall / T:8.3f} {wall:8.1f}   (run_pipeline, model loading included)")
+    print(f"{'cpu':10s} {cpu / T:8.3f} {cpu:8.1f}   (CPU time of all threads: the figure to trust on a busy machine)")
+    print(f"peak RSS {peak_mb:.0f} MB (pipeline process)" + (f"; generator {synth_mb:.0f} MB" if synth_mb else ""))
+    print()
+    print(format_table(result))
+    print()
+    print("  ".join(f"{h:>10s}" for _, h in KEY_ACCURACY))
+    print("  ".join(f"{fmt(result.metrics.get(k), 2 if k.endswith('deg') else 1):>10s}" for k, _ in KEY_ACCURACY))
+    if profile:
+        print("\npyinstrument, top entries by self time (full tree in OUT/profile.txt with --keep):")
+        print(profile)
+    if args.keep:
+        print(f"\nsession and results in {work}")
+
+
+if __name__ == "__main__":
+    main()

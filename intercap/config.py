@@ -39,7 +39,6 @@ class PrepareConfig:
     icp_max_distance_m: float = 0.05
     calib_warn_mm: float = 10.0  # neighbour disagreement above this is flagged
     calib_warn_deg: float = 1.0
-    calib_k_sigma: float = 3.0  # ... and only when it is also this many of its standard deviations (clear evidence)
     save_clouds: bool = True  # write one fused .ply per checked frame for inspection
     seed: int = 0
 

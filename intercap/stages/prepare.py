@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from intercap.calib.alignment import check_calibration, format_agreement, pair_flagged
+from intercap.calib.alignment import check_calibration, format_agreement
 from intercap.config import Config
 from intercap.geometry.cameras import Cameras, depth_to_point_grid, pixel_rays
 from intercap.geometry.ground import GroundPlane, fit_ground_plane, up_hint_from_cameras
@@ -105,8 +105,7 @@ def estimate_ground(session, clouds: ViewClouds, cfg, progress: bool) -> tuple[G
 
 
 AGREEMENT_FIELDS = ("cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
-                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg",
-                    "translation_sigma_mm", "rotation_sigma_deg", "observable_dof", "significance")
+                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg")
 
 
 def agreement_rows(results: list, frames: int) -> list[dict]:
@@ -157,15 +156,15 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     if used_frames:
         results = check_calibration([np.concatenate(f) for f in fused], names, centers,
                                     max_distance=pcfg.icp_max_distance_m,
-                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02),
-                                    max_sigma=pcfg.calib_warn_mm / 1000 / max(pcfg.calib_k_sigma, 1.0))
-    warn = {"warn_mm": pcfg.calib_warn_mm, "warn_deg": pcfg.calib_warn_deg, "k_sigma": pcfg.calib_k_sigma}
-    pairs = [{**row, "flagged": pair_flagged(r, **warn)} for row, r in zip(agreement_rows(results, used_frames), results)]
-    flagged = [p for p in pairs if p["flagged"]]
+                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02))
+    pairs = agreement_rows(results, used_frames)
+    flagged = [p for p in pairs if p["correction_translation_mm"] > pcfg.calib_warn_mm
+               or p["correction_rotation_deg"] > pcfg.calib_warn_deg]
     write_json(stage_dir / "calibration_check.json", {"frames": [int(f) for f in checked], "pairs": pairs,
-                                                      **warn, "flagged": flagged})
+                                                      "warn_mm": pcfg.calib_warn_mm, "flagged": flagged})
     if results:
-        log.info("calibration check (clouds fused over %d frames)\n%s", used_frames, format_agreement(results, **warn))
+        log.info("calibration check (clouds fused over %d frames)\n%s", used_frames,
+                 format_agreement(results, warn_mm=pcfg.calib_warn_mm, warn_deg=pcfg.calib_warn_deg))
     for p in flagged:
         log.warning("cameras %s and %s disagree by %.1f mm / %.2f deg: check the calibration",
                     p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["correction_rotation_deg"])

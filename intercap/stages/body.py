@@ -623,9 +623,10 @@ def draw_overlay(session, model, params: BodyParams, frame_id: int, cameras: Cam
 def world_up(session, out_dir: Path) -> np.ndarray:
     """(3,) unit up in the world frame: the ground plane's normal (given in session.yaml or fitted
     by `prepare`), else the cameras' mean -y axis. Never a world axis: rigs put the world anywhere."""
-    ground = Path(out_dir) / "prepare" / "ground.json"
-    if ground.exists():
-        return np.asarray(read_json(ground)["normal"], np.float64)
+    from intercap.stages.prepare import load_ground
+
+    if (Path(out_dir) / "prepare" / "ground.json").exists():
+        return load_ground(out_dir).normal
     if session.ground is not None:
         normal = np.asarray(session.ground[1], np.float64)
         return normal / np.linalg.norm(normal)

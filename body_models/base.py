@@ -156,8 +156,13 @@ class BodyModel(torch.nn.Module):
     def forward(self, params: BodyParams) -> BodyOutput:  # pragma: no cover - abstract
         raise NotImplementedError
 
-    def sparse_forward(self, params: BodyParams, vertex_ids: torch.Tensor) -> BodyOutput:
-        """`forward` keeping only the vertices `vertex_ids`; backends override it with a cheaper path."""
+    def rest_state(self, params: BodyParams, vertex_ids: torch.Tensor):
+        """What `sparse_forward` can reuse while shape and expression stay fixed (None: nothing)."""
+        return None
+
+    def sparse_forward(self, params: BodyParams, vertex_ids: torch.Tensor, rest=None) -> BodyOutput:
+        """`forward` keeping only the vertices `vertex_ids`; backends override it with a cheaper path
+        (and may reuse `rest`, their `rest_state` for the same shape, expression and vertices)."""
         out = self.forward(params)
         return BodyOutput(vertices=out.vertices[:, vertex_ids], joints=out.joints, keypoints=out.keypoints)
 

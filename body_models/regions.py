@@ -75,8 +75,10 @@ def farthest_point_subsample(points: np.ndarray, count: int, seed: int = 0) -> n
     rng = np.random.default_rng(seed)
     chosen = np.empty(count, dtype=np.int64)
     chosen[0] = rng.integers(len(points))
-    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    points = np.ascontiguousarray(points, np.float64)
+    squared = np.einsum("nd,nd->n", points, points)
+    dist = squared - 2 * points @ points[chosen[0]] + squared[chosen[0]]  # squared distances: same argmax
     for k in range(1, count):
         chosen[k] = int(np.argmax(dist))
-        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[k]], axis=1))
+        np.minimum(dist, squared - 2 * points @ points[chosen[k]] + squared[chosen[k]], out=dist)
     return np.sort(chosen)

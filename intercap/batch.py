@@ -15,6 +15,7 @@ same path. `local=True` runs the sessions one after another in this process, wit
 from __future__ import annotations
 
 import csv
+import dataclasses
 import glob
 import io
 import logging
@@ -239,6 +240,8 @@ def run_many(patterns: list[str], root, cfg: Config | None = None, stages: list[
         try:
             gpus = _gpus_per_task(gpus_per_task, cfg, ray.cluster_resources().get("GPU", 0))
             task = ray.remote(run_session).options(num_cpus=cpus_per_task, num_gpus=gpus, max_retries=0)
+            if not cfg.run.workers:  # a task's pipeline uses the CPUs it reserved, not one process per core
+                cfg = dataclasses.replace(cfg, run=dataclasses.replace(cfg.run, workers=max(1, int(cpus_per_task))))
             pending = {task.remote(str(p), results[p].out, cfg, names): p for p in todo}
             while pending:
                 ready, _ = ray.wait(list(pending), num_returns=1)

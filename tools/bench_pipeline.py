@@ -5,8 +5,9 @@ natural speed = 219 frames, 4 views, 640x576 by default), every built stage runs
 settings (`run_pipeline`, as `intercap run` does), and the bench prints:
   * per-stage seconds per frame (OUT/metrics.json) and the total (sum of stages, and the whole
     run's wall clock including model loading),
-  * peak RSS of the pipeline (this process: the session is generated in a child process so that
-    its memory does not count; the generator's own peak is printed beside it),
+  * peak RSS of the pipeline, this process and the stages' worker processes summed (the session
+    is generated in a child process beforehand so that its memory does not count; the generator's
+    own peak is printed beside it),
   * the accuracy table of `intercap eval` against the session's ground truth (body surface, MPJPE,
     hands, object ADD(-S), penetration, contact).
 
@@ -30,6 +31,7 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -51,8 +53,50 @@ def make_session(path: Path, synth: dict) -> float:
     return max(after, before) / 1024
 
 
-def run(session: Path, out: Path, overrides: list[str], profile: bool) -> tuple[dict, float, float, str | None]:
-    """(metrics.json, wall seconds, CPU seconds, profile summary or None) of the full pipeline, default stages."""
+class PeakMemory:
+    """Peak of the summed RSS of this process and all its descendants (the stages' worker
+    processes run beside the parent), sampled every `interval` s; ru_maxrss alone would see
+    only the largest single process. Falls back to ru_maxrss without psutil."""
+
+    def __init__(self, interval: float = 0.2):
+        self.interval, self.peak_mb, self._stop = interval, 0.0, threading.Event()
+        self._thread = threading.Thread(target=self._sample, daemon=True)
+
+    def _sample(self) -> None:
+        try:
+            import psutil
+        except ImportError:
+            return
+        me = psutil.Process()
+        while not self._stop.is_set():
+            total = 0
+            for proc in [me, *me.children(recursive=True)]:
+                try:
+                    total += proc.memory_info().rss
+                except psutil.Error:  # a worker that just ended
+                    pass
+            self.peak_mb = max(self.peak_mb, total / 2**20)
+            self._stop.wait(self.interval)
+
+    def __enter__(self):
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self._thread.join()
+        self.peak_mb = max(self.peak_mb, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)
+
+
+def cpu_seconds() -> float:
+    """CPU time of this process and its finished children (the stages' workers)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def run(session: Path, out: Path, overrides: list[str], profile: bool) -> tuple[dict, float, float, float, str | None]:
+    """(metrics.json, wall seconds, CPU seconds, peak MB, profile summary or None) of the full
+    pipeline, default stages. CPU and memory include the stages' worker processes."""
     from intercap.config import load_config
     from intercap.pipeline import run_pipeline
 
@@ -66,16 +110,17 @@ def run(session: Path, out: Path, overrides: list[str], profile: bool) -> tuple[
         else:
             profiler = Profiler(interval=0.01)  # a coarse 10 ms sampling: the run takes minutes, overhead stays low
             profiler.start()
-    start, cpu0 = time.perf_counter(), time.process_time()
-    metrics = run_pipeline(session, out, cfg, progress=False)
-    wall, cpu = time.perf_counter() - start, time.process_time() - cpu0
+    start, cpu0 = time.perf_counter(), cpu_seconds()
+    with PeakMemory() as memory:
+        metrics = run_pipeline(session, out, cfg, progress=False)
+    wall, cpu = time.perf_counter() - start, cpu_seconds() - cpu0
     summary = None
     if profiler is not None:
         profiler.stop()
         (out / "profile.txt").write_text(profiler.output_text(unicode=False, color=False))
         flat = profiler.output_text(unicode=False, color=False, flat=True)
         summary = "\n".join(flat.splitlines()[:40])
-    return metrics, wall, cpu, summary
+    return metrics, wall, cpu, memory.peak_mb, summary
 
 
 def fmt(value, digits=1) -> str:
@@ -106,8 +151,7 @@ def main(argv=None) -> None:
         start = time.perf_counter()
         synth_mb = make_session(session, synth)
         synth_s = time.perf_counter() - start
-        metrics, wall, cpu, profile = run(session, out, args.set, args.profile)
-        peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # before evaluation adds its own
+        metrics, wall, cpu, peak_mb, profile = run(session, out, args.set, args.profile)
         from intercap.evaluation.evaluate import evaluate
         from intercap.evaluation.table import format_table
 
@@ -126,8 +170,8 @@ def main(argv=None) -> None:
     stage_sum = sum(f.get("seconds_per_frame", 0.0) for f in metrics.values())
     print(f"{'total':10s} {stage_sum:8.3f} {stage_sum * T:8.1f}   (stages)")
     print(f"{'wall':10s} {wall / T:8.3f} {wall:8.1f}   (run_pipeline, model loading included)")
-    print(f"{'cpu':10s} {cpu / T:8.3f} {cpu:8.1f}   (CPU time of all threads: the figure to trust on a busy machine)")
-    print(f"peak RSS {peak_mb:.0f} MB (pipeline process)" + (f"; generator {synth_mb:.0f} MB" if synth_mb else ""))
+    print(f"{'cpu':10s} {cpu / T:8.3f} {cpu:8.1f}   (CPU time of all threads and workers: the figure to trust on a busy machine)")
+    print(f"peak RSS {peak_mb:.0f} MB (pipeline and its workers together)" + (f"; generator {synth_mb:.0f} MB" if synth_mb else ""))
     print()
     print(format_table(result))
     print()

@@ -34,7 +34,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from intercap.body_models import BodyParams, load_from_config
 from intercap.body_models.base import axis_angle_to_matrix, matrix_to_axis_angle
@@ -44,6 +43,7 @@ from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
 from intercap.geometry.ground import up_hint_from_cameras
 from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
+from intercap.parallel import Chunk, frame_chunks, run_chunks, worker_count
 
 log = logging.getLogger(__name__)
 
@@ -481,13 +481,14 @@ class BodyFitter:
 
     # -- energy ----------------------------------------------------------------------
     def energy_terms(self, params: BodyParams, obs: BodyObservations, terms, matches=None,
-                     rho: float | None = None, out=None) -> dict[str, torch.Tensor]:
+                     rho: float | None = None, out=None, rest=None) -> dict[str, torch.Tensor]:
         """Each active term per frame, (B,), unweighted. `matches`: E_D's (nearest, normals) from
         `correspondences`, needed when "depth" is among the terms; `rho`: E_J's robust scale
         (default cfg.keypoint_rho); `out`: the model's output for `params` whose first vertices
-        are the fitting subsample, when the caller has it already."""
+        are the fitting subsample, when the caller has it already; `rest`: the model's `rest_state`
+        of the subsample while shape and expression do not move."""
         if out is None:
-            out = self.model.sparse_forward(params, self.subset)  # vertices: the fitting subsample only
+            out = self.model.sparse_forward(params, self.subset, rest)  # vertices: the fitting subsample only
         C = len(self.cameras)
         B, K = out.keypoints.shape[0], NUM_BODY_HANDS
         result = {}
@@ -547,7 +548,10 @@ class BodyFitter:
                 leaves["body_pose"] = params.body_pose[:, free].detach().clone()
             if "shape" in leaves:  # optimised as a logit: anny's phenotypes extrapolate wildly outside [0, 1]
                 leaves["shape"] = torch.logit(params.shape.detach().clamp(SHAPE_EPS, 1 - SHAPE_EPS))
-            state = {"matches": None}
+            state = {"matches": None, "rest": None}
+            if "shape" not in leaves and "expression" not in leaves:  # the rest pose does not move: computed once
+                with torch.no_grad():
+                    state["rest"] = self.model.rest_state(params, self.subset)
 
             def current() -> BodyParams:
                 values = {n: leaves.get(n, getattr(params, n).detach()) for n in
@@ -561,7 +565,7 @@ class BodyFitter:
 
             def energy() -> torch.Tensor:
                 terms = self.energy_terms(current(), obs, phase.terms, state["matches"],
-                                          getattr(self.cfg, phase.rho_key))
+                                          getattr(self.cfg, phase.rho_key), rest=state["rest"])
                 return sum(self.weight(k) * v.sum() for k, v in terms.items())
 
             def refresh(step, value):
@@ -649,21 +653,45 @@ def upright_template(model, up: np.ndarray) -> BodyParams:
 
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
-    """The `body` stage: writes OUT/body_params.npz, body_vertices.npy, body_faces.npy, keypoints3d.npy."""
+    """The `body` stage: writes OUT/body_params.npz, body_vertices.npy, body_faces.npy, keypoints3d.npy.
+
+    The take is fitted in chunks of frames by `run.workers` processes (`intercap.parallel`);
+    each chunk keeps its own resumable checkpoint."""
+    out_dir = Path(out_dir)
+    (out_dir / "body").mkdir(parents=True, exist_ok=True)
+    T = session.num_frames
+    chunks = frame_chunks(T, worker_count(cfg), cfg.run.min_frames_per_worker, cfg.body.batch_frames)
+    where = session if len(chunks) == 1 else session.root  # workers load the session themselves
+    parts = run_chunks(fit_chunk, chunks, (where, cfg, out_dir), T, "body", progress)
+    model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
+    fitted = BodyParams.from_numpy_dict(
+        {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]}, dtype=model.dtype)
+    valid, reproj, seconds = (np.concatenate([p[key] for p in parts]) for key in ("valid", "reprojection_px", "seconds"))
+    cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
+    figures = write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, cfg.body, cameras)
+    return {**figures, "workers": len(chunks)}
+
+
+def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
+    """Fit frames [chunk.lo, chunk.hi) in batches, each warm-started from the previous batch's
+    last fit; checkpointed after every batch (OUT/body/progress_LO_HI.npz). Returns the rows'
+    parameters (numpy), `valid`, `reprojection_px` and `seconds`. `queue.put(n)` per n frames done."""
+    from intercap.session import Session
+
+    if not hasattr(session, "frame_ids"):
+        session = Session.load(session)
     bcfg = cfg.body
     torch.manual_seed(bcfg.seed)
     out_dir = Path(out_dir)
-    stage_dir = out_dir / "body"
-    stage_dir.mkdir(parents=True, exist_ok=True)
     model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
     cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
     keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints)
     person = PersonPoints(session, cameras, bcfg, out_dir)
     fitter = BodyFitter(model, cameras, bcfg)
 
-    T = session.num_frames
-    frame_ids = session.frame_ids
-    checkpoint = stage_dir / "progress.npz"
+    T = chunk.hi - chunk.lo
+    frame_ids = session.frame_ids[chunk.lo:chunk.hi]
+    checkpoint = out_dir / "body" / f"progress_{chunk.lo:06d}_{chunk.hi:06d}.npz"
     fitted = model.init_params(T)
     done = np.zeros(T, bool)
     valid = np.zeros(T, bool)
@@ -673,11 +701,11 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         saved = np.load(checkpoint)
         fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype)
         done, valid, reproj, seconds = saved["done"], saved["valid"], saved["reprojection_px"], saved["seconds"]
-        log.info("body: resuming, %d of %d frames already fitted", int(done.sum()), T)
+        log.info("body: resuming frames %d-%d, %d of %d already fitted", chunk.lo, chunk.hi - 1, int(done.sum()), T)
+        queue.put(int(done.sum()))
 
     template = upright_template(model, world_up(session, out_dir))  # the next batch starts from the last fit
     batches = [np.arange(s, min(s + bcfg.batch_frames, T)) for s in range(0, T, bcfg.batch_frames)]
-    bar = tqdm(total=T, desc="body", unit="frame", disable=not progress, initial=int(done.sum()))
     for batch in batches:
         if done[batch].all():
             if valid[batch].any():
@@ -701,10 +729,9 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
             template = params[len(keep) - 1]
         done[batch] = True
         seconds[batch] = (time.perf_counter() - start) / len(batch)
-        bar.update(len(batch))
+        queue.put(len(batch))
         save_npz(checkpoint, **fitted.to_numpy_dict(), done=done, valid=valid, reprojection_px=reproj, seconds=seconds)
-    bar.close()
-    return write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, bcfg, cameras)
+    return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds}
 
 
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")

@@ -40,7 +40,6 @@ from pathlib import Path
 import numpy as np
 import torch
 import trimesh
-from tqdm import tqdm
 
 from intercap.body_models import BodyParams, load_from_config
 from intercap.body_models.base import PARAM_FIELDS, BodyOutput, axis_angle_to_matrix, matrix_to_axis_angle
@@ -49,6 +48,7 @@ from intercap.energies.motion_prior import MODEL_FPS
 from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras
 from intercap.io.files import per_frame_result, publish, save_npz, write_json
+from intercap.parallel import Chunk, frame_chunks, run_chunks, worker_count
 from intercap.stages.body import (
     PHASES,
     BodyFitter,
@@ -332,10 +332,12 @@ class GlobalFitter:
         return (points - self.shape.centroid.to(points)) @ R.transpose(1, 2) + centre[:, None]
 
     # -- energy ---------------------------------------------------------------------------
-    def energy_terms(self, params: BodyParams, R, centre, data: "WindowData", matches) -> dict[str, torch.Tensor]:
-        """Every term, unweighted: per frame (W,) where it is per frame."""
+    def energy_terms(self, params: BodyParams, R, centre, data: "WindowData", matches, rest=None
+                     ) -> dict[str, torch.Tensor]:
+        """Every term, unweighted: per frame (W,) where it is per frame. `rest`: the model's
+        `rest_state` of `vertex_ids` (shape and expression are fixed in this stage)."""
         g = self.gcfg
-        out = self.model.sparse_forward(params, self.vertex_ids)
+        out = self.model.sparse_forward(params, self.vertex_ids, rest)
         vertices = out.vertices  # (W, U, 3)
         subset_out = BodyOutput(vertices=vertices, joints=out.joints, keypoints=out.keypoints)
         terms = {f"body_{k}": v for k, v in self.body.energy_terms(
@@ -407,10 +409,12 @@ class GlobalFitter:
             return body, R, centre
 
         state = {"matches": self.body.correspondences(init, data.obs)}
+        with torch.no_grad():
+            rest = self.model.rest_state(init, self.vertex_ids)  # shape and expression stay as the body stage fitted them
 
         def energy():
             body, R, centre = current()
-            terms = self.energy_terms(body, R, centre, data, state["matches"])
+            terms = self.energy_terms(body, R, centre, data, state["matches"], rest)
             return sum(self.weight(k) * v.sum() for k, v in terms.items())
 
         def refresh(step, value):
@@ -420,12 +424,12 @@ class GlobalFitter:
                 monitor(step, value)
 
         with torch.no_grad():
-            before = {k: float(v.sum()) for k, v in self.energy_terms(*current(), data, state["matches"]).items()}
+            before = {k: float(v.sum()) for k, v in self.energy_terms(*current(), data, state["matches"], rest).items()}
         result = minimise(list(leaves.values()), energy, max_steps=g.steps, inner_iterations=g.inner_iterations,
                           ftol=g.ftol, monitor=refresh)
         with torch.no_grad():
             body, R, centre = (x.detach() for x in current())
-            after = {k: float(v.sum()) for k, v in self.energy_terms(body, R, centre, data, state["matches"]).items()}
+            after = {k: float(v.sum()) for k, v in self.energy_terms(body, R, centre, data, state["matches"], rest).items()}
         stats = {"before": before, "after": after, "steps": result.steps, "evaluations": result.evaluations,
                  "stopped": result.stopped}
         return body, R, centre, stats
@@ -491,62 +495,105 @@ class Observations:
 # ---------------------------------------------------------------------------
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
-    """The `global` stage; see the module docstring."""
-    from intercap.stages.prepare import load_ground
-
+    """The `global` stage; see the module docstring. The take is fitted in chunks of frames by
+    `run.workers` processes (`intercap.parallel`), each chunk with a window's overlap of context
+    either side and its own resumable checkpoint."""
     if session.object is None:
         log.info("global: the session has no object; the per-frame body results stand")
         return {"skipped": "no object in session"}
-    g = cfg.global_
-    torch.manual_seed(g.seed)
     out_dir = Path(out_dir)
-    stage_dir = out_dir / "global"
-    stage_dir.mkdir(parents=True, exist_ok=True)
-    model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
-    cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
-    per_frame = load_per_frame(session, out_dir, model)
-    ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
-    if ground is None:
-        log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
-    mesh = session.object.load_mesh()
-    shape = ObjectShape(mesh, g.sdf_resolution, session.object.contact_vertices, seed=g.seed)
-    if per_frame.hand_distance is None:
-        per_frame.hand_distance = hand_object_distance(model, per_frame, shape)
-    per_frame.grasping = per_frame.contact[:, None] & (per_frame.hand_distance < g.hand_reach_m)
-    fitter = GlobalFitter(model, cameras, cfg.body, g, shape, ground, session.fps)
-    flight = free_flight(per_frame, shape, ground, session.fps, g)
-    if flight["episodes"].size and g.w_flight > 0:
-        fitter.gravity = torch.as_tensor(-9.81 * flight["up"], dtype=torch.float32)
-    if flight["figures"]["gravity_source"] == "flight":  # no floor in view: up from the object's free flight
-        write_json(stage_dir / "gravity.json", {"up": flight["figures"]["gravity_up"], "source": "flight",
-                                                "gravity_mps2": (-9.81 * flight["up"]).tolist(),
-                                                "episodes": flight["figures"]["flight_episodes"]})
-    observations = Observations(session, cfg, out_dir, cameras)
-
+    (out_dir / "global").mkdir(parents=True, exist_ok=True)
+    g = cfg.global_
     T = session.num_frames
-    plan = windows(T, g.window_frames, g.window_overlap, g.window_history)
+    chunks = frame_chunks(T, worker_count(cfg), cfg.run.min_frames_per_worker, context=g.window_overlap)
+    if len(chunks) == 1:
+        problem = GlobalProblem(session, cfg, out_dir)
+        parts = run_chunks(fit_chunk, chunks, (session, cfg, out_dir, problem), T, "global", progress)
+    else:  # workers load the session and set up the problem themselves
+        parts = run_chunks(fit_chunk, chunks, (session.root, cfg, out_dir, None), T, "global", progress)
+        problem = GlobalProblem(session, cfg, out_dir)
+    fitted = BodyParams.from_numpy_dict(
+        {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]},
+        dtype=problem.model.dtype)
+    R_all = torch.from_numpy(np.concatenate([p["R"] for p in parts]))
+    centre_all = torch.from_numpy(np.concatenate([p["centre"] for p in parts]))
+    history = [h for p in parts for h in p["history"]]
+    seconds = sum(p["seconds"] for p in parts)
+    figures = write_outputs(session, problem.model, fitted, R_all, centre_all, problem.shape, problem.per_frame,
+                            seconds, history, out_dir, problem.observations, problem.cameras, cfg,
+                            problem.fitter.weight)
+    return {**figures, **problem.flight["figures"], "workers": len(chunks)}
+
+
+class GlobalProblem:
+    """What every chunk of the stage needs: the model, the per-frame results, the object's shape,
+    the ground, free-flight episodes, the fitter and the observation loader."""
+
+    def __init__(self, session, cfg, out_dir: Path):
+        from intercap.stages.prepare import load_ground
+
+        g = cfg.global_
+        torch.manual_seed(g.seed)
+        stage_dir = out_dir / "global"
+        self.model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model),
+                                      device=cfg.run.device)
+        self.cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
+        self.per_frame = load_per_frame(session, out_dir, self.model)
+        ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
+        if ground is None:
+            log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
+        self.shape = ObjectShape(session.object.load_mesh(), g.sdf_resolution, session.object.contact_vertices,
+                                 seed=g.seed)
+        per_frame = self.per_frame
+        if per_frame.hand_distance is None:
+            per_frame.hand_distance = hand_object_distance(self.model, per_frame, self.shape)
+        per_frame.grasping = per_frame.contact[:, None] & (per_frame.hand_distance < g.hand_reach_m)
+        self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, g, self.shape, ground, session.fps)
+        self.flight = flight = free_flight(per_frame, self.shape, ground, session.fps, g)
+        if flight["episodes"].size and g.w_flight > 0:
+            self.fitter.gravity = torch.as_tensor(-9.81 * flight["up"], dtype=torch.float32)
+        if flight["figures"]["gravity_source"] == "flight":  # no floor in view: up from the object's free flight
+            write_json(stage_dir / "gravity.json", {"up": flight["figures"]["gravity_up"], "source": "flight",
+                                                    "gravity_mps2": (-9.81 * flight["up"]).tolist(),
+                                                    "episodes": flight["figures"]["flight_episodes"]})
+        self.observations = Observations(session, cfg, out_dir, self.cameras)
+
+
+def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk: Chunk, queue) -> dict:
+    """Fit frames [chunk.lo_context, chunk.hi_context) in overlapping windows, checkpointed after
+    every window (OUT/global/progress_LO_HI.npz); returns rows [chunk.lo, chunk.hi) of the body
+    parameters (numpy), object rotation `R` and `centre`, the windows' `history` and `seconds`."""
+    from intercap.session import Session
+
+    if not hasattr(session, "frame_ids"):
+        session = Session.load(session)
+    g = cfg.global_
+    out_dir = Path(out_dir)
+    problem = problem or GlobalProblem(session, cfg, out_dir)
+    per_frame, shape = problem.per_frame, problem.shape
+    lo, hi = chunk.lo_context, chunk.hi_context
+    plan = [(a + lo, b + lo, fixed, commit + lo) for a, b, fixed, commit in
+            windows(hi - lo, g.window_frames, g.window_overlap, g.window_history)]
     fitted = per_frame.body.clone()
     R_all = torch.as_tensor(per_frame.R, dtype=torch.float32)
     centre_all = torch.as_tensor(per_frame.t, dtype=torch.float32) + R_all @ shape.centroid
-    checkpoint = stage_dir / "progress.npz"
+    checkpoint = out_dir / "global" / f"progress_{chunk.lo:06d}_{chunk.hi:06d}.npz"
     next_window, seconds, history = 0, 0.0, []
     if checkpoint.exists():
         saved = np.load(checkpoint)
-        fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype)
+        fitted = BodyParams.from_numpy_dict(saved, dtype=problem.model.dtype)
         R_all, centre_all = torch.from_numpy(saved["R"]), torch.from_numpy(saved["centre"])
         next_window, seconds = int(saved["next_window"]), float(saved["seconds"])
-        log.info("global: resuming at window %d of %d", next_window + 1, len(plan))
-
-    bar = tqdm(total=T, desc="global", unit="frame", disable=not progress,
-               initial=plan[next_window - 1][3] if next_window else 0)
+        log.info("global: frames %d-%d resuming at window %d of %d", chunk.lo, chunk.hi - 1, next_window + 1, len(plan))
+    reported = chunk.lo
     for k in range(next_window, len(plan)):
         start, end, fixed, commit = plan[k]
         tick = time.perf_counter()
         frames = np.arange(start, end)
-        data = observations.window(frames, per_frame, shape)
-        data.flight = torch.as_tensor(flight["episode_of_frame"][frames])
-        body, R, centre, stats = fitter.fit_window(fitted[start:end], R_all[start:end], centre_all[start:end],
-                                                   fixed, data)
+        data = problem.observations.window(frames, per_frame, shape)
+        data.flight = torch.as_tensor(problem.flight["episode_of_frame"][frames])
+        body, R, centre, stats = problem.fitter.fit_window(fitted[start:end], R_all[start:end],
+                                                           centre_all[start:end], fixed, data)
         keep = slice(fixed, commit - start)
         for name, value in body.tensors().items():
             getattr(fitted, name)[start + fixed:commit] = value[keep]
@@ -556,11 +603,13 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         log.debug("global window %d: %s", k, stats)
         save_npz(checkpoint, **fitted.to_numpy_dict(), R=R_all.numpy(), centre=centre_all.numpy(),
                  next_window=k + 1, seconds=seconds)
-        bar.update(commit - (start + fixed))
-    bar.close()
-    figures = write_outputs(session, model, fitted, R_all, centre_all, shape, per_frame, seconds, history, out_dir,
-                            observations, cameras, cfg, fitter.weight)
-    return {**figures, **flight["figures"]}
+        finished = min(commit, chunk.hi)
+        if finished > reported:
+            queue.put(finished - reported)
+            reported = finished
+    rows = slice(chunk.lo, chunk.hi)
+    return {"params": fitted.map(lambda t: t[rows]).to_numpy_dict(), "R": R_all[rows].numpy(),
+            "centre": centre_all[rows].numpy(), "history": history, "seconds": seconds}
 
 
 def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: float, g) -> dict:

@@ -23,7 +23,7 @@ observations, or where no view sees the object, get NaN poses and confidence 0
 
 Writes OUT/object/object_poses.npz (R (T,3,3), t (T,3), confidence (T,), valid (T,),
 frame_ids (T,)), shown as OUT/object_poses.npz until the `global` stage
-replaces that with its own, OUT/object/progress.npz while running (resume), and
+replaces that with its own, OUT/object/progress_LO_HI.npz per chunk of frames while running (resume), and
 OUT/object/overlays/*.jpg (rendered outline on the colour images) for a person
 to check.
 """
@@ -59,6 +59,7 @@ from intercap.geometry.segmentation import (
 )
 from intercap.geometry.symmetry import axis_angle_matrix
 from intercap.io.files import publish, save_npz
+from intercap.parallel import Chunk, frame_chunks, run_chunks, worker_count
 
 log = logging.getLogger(__name__)
 reg = o3d.pipelines.registration
@@ -507,7 +508,7 @@ STATUS_NAMES = {0: "pending", TRACKED: "tracked", REINITIALISED: "reinitialised"
 
 
 def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None = None, progress: bool = True,
-          initial_pose=None) -> dict[str, np.ndarray]:
+          initial_pose=None, queue=None) -> dict[str, np.ndarray]:
     """Track the object through `frame_ids`; resumes from `checkpoint` when it exists.
 
     Per frame: fit from the constant-velocity prediction (or, for up to
@@ -523,7 +524,8 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
 
     Returns R (T,3,3), t (T,3) (NaN where untrusted), confidence (T,), status (T,),
     energy (T,) and confirmed (T,): a search found nothing better than the tracked
-    pose, so its E_O is the new level (for the next 5 frames at least)."""
+    pose, so its E_O is the new level (for the next 5 frames at least). With `queue`, each
+    finished frame is put on it (`intercap.parallel`) instead of showing a progress bar."""
     cfg = tracker.cfg
     T = len(frame_ids)
     state = {"R": np.full((T, 3, 3), np.nan), "t": np.full((T, 3), np.nan), "confidence": np.zeros(T),
@@ -535,9 +537,11 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
             state = {k: saved[k] if k in saved else state[k] for k in state}
             start = int(saved["next"])
             log.info("object: resuming at frame %d of %d", start, T)
+            if queue is not None:
+                queue.put(start)
     history = [None if state["status"][i] not in (TRACKED, REINITIALISED) else (state["R"][i], state["t"][i])
                for i in range(start)]
-    for i in tqdm(range(start, T), desc="object", disable=not progress, initial=start, total=T):
+    for i in tqdm(range(start, T), desc="object", disable=not progress or queue is not None, initial=start, total=T):
         frame_id = int(frame_ids[i])
         predicted, reach = predict_pose(history), 0.0
         if predicted is None and i == 0 and initial_pose is not None:
@@ -600,7 +604,23 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
         history.append((fit.R, fit.t) if trusted else None)
         if checkpoint is not None and ((i + 1) % cfg.checkpoint_every == 0 or i + 1 == T):
             save_npz(checkpoint, next=i + 1, **state)
+        if queue is not None:
+            queue.put(1)
     return state
+
+
+def track_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict[str, np.ndarray]:
+    """`track` over frames [chunk.lo, chunk.hi) in a worker (`intercap.parallel`): a chunk after
+    the first starts without a prediction, from registration, as a lost object is found again."""
+    from intercap.session import Session
+
+    if not hasattr(session, "frame_ids"):
+        session = Session.load(session)
+    torch.manual_seed(cfg.object.seed)
+    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh(), device=cfg.run.device)
+    checkpoint = Path(out_dir) / "object" / f"progress_{chunk.lo:06d}_{chunk.hi:06d}.npz"
+    return track(tracker, session.frame_ids[chunk.lo:chunk.hi], checkpoint, False,
+                 session.object.initial_pose if chunk.lo == 0 else None, queue)
 
 
 def draw_overlay(session, tracker: ObjectTracker, frame_id: int, R, t, path: Path) -> None:
@@ -624,10 +644,13 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         log.info("object: the session has no object; nothing to track")
         return {"skipped": "no object in session"}
     ocfg = cfg.object
-    torch.manual_seed(ocfg.seed)
     stage_dir = Path(out_dir) / "object"
+    stage_dir.mkdir(parents=True, exist_ok=True)
+    chunks = frame_chunks(session.num_frames, worker_count(cfg), cfg.run.min_frames_per_worker)
+    where = session if len(chunks) == 1 else session.root  # workers load the session themselves
+    parts = run_chunks(track_chunk, chunks, (where, cfg, out_dir), session.num_frames, "object", progress)
+    state = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
     tracker = ObjectTracker(session, ocfg, session.object.load_mesh(), device=cfg.run.device)
-    state = track(tracker, session.frame_ids, stage_dir / "progress.npz", progress, session.object.initial_pose)
     valid = np.isin(state["status"], (TRACKED, REINITIALISED))
     save_npz(stage_dir / "object_poses.npz", R=state["R"], t=state["t"], confidence=state["confidence"],
              valid=valid, status=state["status"], frame_ids=session.frame_ids)

@@ -75,6 +75,12 @@ def test_sparse_forward_is_the_forward(model):
     assert torch.allclose(full.keypoints, sparse.keypoints, atol=1e-5)
     assert torch.allclose(full.joints, sparse.joints, atol=1e-6)
     assert torch.allclose(full.vertices[:, ids], sparse.vertices, atol=1e-6)
+    rest = model.rest_state(params, ids)  # shape fixed: the rest part computed once, reused with a new pose
+    params.body_pose.normal_(0, 0.3)
+    with torch.no_grad():
+        full, cached = model(params), model.sparse_forward(params, ids, rest)
+    assert torch.allclose(full.keypoints, cached.keypoints, atol=1e-5)
+    assert torch.allclose(full.vertices[:, ids], cached.vertices, atol=1e-6)
 
 
 def test_triangulation_recovers_points():
@@ -184,9 +190,10 @@ def test_stage_marks_frames_without_evidence(sample, tmp_path):
     assert np.isfinite(saved["shape_mean"]).all()
 
     # Resume: forget the second batch; the rerun fits only it and gives the same result.
-    progress = dict(np.load(out / "body" / "progress.npz"))
+    checkpoint = out / "body" / f"progress_{0:06d}_{FRAMES:06d}.npz"  # one chunk: too few frames for two workers
+    progress = dict(np.load(checkpoint))
     progress["done"][2:] = False
-    np.savez(out / "body" / "progress.npz", **progress)
+    np.savez(checkpoint, **progress)
     (out / "body" / "DONE.json").unlink()
     run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2"]), stages=["detect", "body"],
                  progress=False)
@@ -217,3 +224,28 @@ def test_detect_stage_feeds_the_body_fit_when_the_session_has_no_keypoints(sampl
     assert seen.sum() >= 40
     error = np.linalg.norm(keypoints[0, :, :25, :2] - truth_pixels.numpy(), axis=-1)[seen]
     assert np.median(error) < 10
+
+
+def test_frame_chunks_cover_the_take_on_batch_boundaries():
+    from intercap.parallel import frame_chunks
+
+    chunks = frame_chunks(150, workers=2, min_frames=48, align=8, context=6)
+    assert [(c.lo, c.hi) for c in chunks] == [(0, 72), (72, 150)]
+    assert (chunks[0].lo_context, chunks[0].hi_context, chunks[1].lo_context, chunks[1].hi_context) == (0, 78, 66, 150)
+    assert len(frame_chunks(90, workers=2, min_frames=48, align=8)) == 1  # too short to share
+    assert [(c.lo, c.hi) for c in frame_chunks(7, workers=4, min_frames=1)] == [(0, 2), (2, 4), (4, 5), (5, 7)]
+
+
+def test_two_workers_fit_the_take_as_one_process_does(tmp_path):
+    """Cut in two chunks fitted by spawned workers, the take's fit matches the truth as well as in one process."""
+    session = trimmed_copy(SAMPLE_SESSION, tmp_path / "session", 8)
+    errors = {}
+    for workers in (1, 2):
+        out = tmp_path / f"out{workers}"
+        cfg = load_config(overrides=[f"run.workers={workers}", "run.min_frames_per_worker=4", "body.batch_frames=4",
+                                     "report.enabled=false"])
+        metrics = run_pipeline(session, out, cfg, stages=["body"], progress=False)["body"]
+        assert metrics["workers"] == workers and metrics["frames_fitted"] == 8
+        gt = np.load(session / "ground_truth" / "keypoints3d.npy")
+        errors[workers] = 1000 * np.linalg.norm(np.load(out / "keypoints3d.npy")[:, :25] - gt[:, :25], axis=-1).mean()
+    assert errors[2] < 30 and abs(errors[2] - errors[1]) < 3, errors

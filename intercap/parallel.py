@@ -1,0 +1,107 @@
+"""Frame-parallel stages: a take cut into contiguous chunks, one worker process per chunk.
+
+The fitting stages run small tensors (8-48 frames of a 2,000-vertex body) whose
+operations are too short to gain from torch's intra-op threads: on two cores
+two threads run a body batch barely faster than one (BENCHMARKS.md). Two
+single-threaded processes, each fitting half the take, run it nearly twice as
+fast. A chunk starts cold, as the first frames of a take do, so the chunks'
+results are those of a take cut in two; stages that smooth over time give each
+chunk some frames of context beyond its ends (`Chunk.lo_context`, `hi_context`).
+
+Workers are spawned (not forked: torch's OpenMP pool does not survive a fork),
+load the session and the model themselves, and report finished frames through
+a queue so the parent shows one progress bar.
+"""
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from typing import Callable
+
+from tqdm import tqdm
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """Frames [lo, hi) are this chunk's results; [lo_context, hi_context) is what it may look at."""
+
+    lo: int
+    hi: int
+    lo_context: int
+    hi_context: int
+
+
+def cpu_count() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def worker_count(cfg) -> int:
+    """`run.workers`, 0 meaning one per CPU core; 1 on a GPU (one process feeds it best)."""
+    if str(cfg.run.device).startswith("cuda"):
+        return 1
+    return max(1, cfg.run.workers or cpu_count())
+
+
+def frame_chunks(T: int, workers: int, min_frames: int, align: int = 1, context: int = 0) -> list[Chunk]:
+    """Contiguous chunks covering [0, T), at most `workers`, none shorter than `min_frames`,
+    boundaries on multiples of `align` (a stage's batch size), each with `context` frames
+    either side where the take has them."""
+    n = max(1, min(workers, T // max(min_frames, 1)))
+    bounds = [0]
+    for k in range(1, n):
+        cut = round(k * T / n / align) * align
+        if bounds[-1] < cut < T:
+            bounds.append(cut)
+    bounds.append(T)
+    return [Chunk(a, b, max(0, a - context), min(T, b + context)) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _init_worker(threads: int) -> None:
+    import torch
+
+    torch.set_num_threads(threads)
+    logging.basicConfig(level=logging.WARNING)
+
+
+def run_chunks(fn: Callable, chunks: list[Chunk], args: tuple, total: int, desc: str, progress: bool,
+               initial: int = 0) -> list:
+    """`fn(*args, chunk, queue)` for every chunk, in worker processes when there are several
+    (in this process otherwise, with queue None); returns the results in chunk order. `fn`
+    puts the number of frames it finishes on `queue` (or nothing); one bar shows them all."""
+    bar = tqdm(total=total, desc=desc, unit="frame", disable=not progress, initial=initial)
+    if len(chunks) == 1:
+        result = fn(*args, chunks[0], _Bar(bar))
+        bar.close()
+        return [result]
+    threads = max(1, cpu_count() // len(chunks))
+    context = mp.get_context("spawn")
+    with context.Manager() as manager:
+        queue = manager.Queue()
+        with ProcessPoolExecutor(len(chunks), mp_context=context, initializer=_init_worker,
+                                 initargs=(threads,)) as pool:
+            futures = [pool.submit(fn, *args, chunk, queue) for chunk in chunks]
+            while not all(f.done() for f in futures):
+                try:
+                    bar.update(queue.get(timeout=0.5))
+                except Exception:  # noqa: BLE001 - queue.Empty through the manager proxy
+                    pass
+            results = [f.result() for f in futures]  # re-raises a worker's error here
+        while not queue.empty():
+            bar.update(queue.get())
+    bar.close()
+    return results
+
+
+class _Bar:
+    """The queue interface over an in-process progress bar."""
+
+    def __init__(self, bar):
+        self.bar = bar
+
+    def put(self, n: int) -> None:
+        self.bar.update(n)

@@ -228,8 +228,9 @@ def chain_cameras(names: list[str], views: dict, root: int = 0) -> np.ndarray:
         n, a, b = best
         if n == 0:
             lost = [names[i] for i in range(C) if i not in in_tree]
-            raise CalibrationError(f"camera{'s' if len(lost) > 1 else ''} {', '.join(lost)} share no board frame "
-                                   f"with {', '.join(names[i] for i in sorted(in_tree))}: show the board to both at once")
+            raise CalibrationError(f"camera{'s' if len(lost) > 1 else ''} {', '.join(lost)} "
+                                   f"share{'' if len(lost) > 1 else 's'} no board frame with "
+                                   f"{', '.join(names[i] for i in sorted(in_tree))}: show the board to both at once")
         common = sorted(per_cam[a].keys() & per_cam[b].keys())
         T_a_from_b = average_transforms([per_cam[a][f] @ np.linalg.inv(per_cam[b][f]) for f in common])
         T[b] = T[a] @ T_a_from_b

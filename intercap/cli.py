@@ -148,7 +148,8 @@ def add_import_parsers(sub) -> argparse._SubParsersAction:
     p.add_argument("--calibration", help="calibration.json of ours giving the rig's poses (from `intercap calibrate`)")
     p.add_argument("--uncalibrated", action="store_true",
                    help="several devices without --calibration: write identity placeholder poses")
-    p.add_argument("--workers", type=int, default=2, help="threads for registration and encoding")
+    p.add_argument("--workers", type=int, help="rig: processes, one per device at a time (default: one per device, "
+                   "at most the CPU count); one recording: threads (default 2)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT_SESSION if it exists")
     p.set_defaults(func=_cmd_import_k4a)
 
@@ -208,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("eval", help="compare a results folder with a session's ground truth")
     p.add_argument("out", help="results folder written by `intercap run`")
-    p.add_argument("--gt", required=True, help="session folder with ground_truth/")
+    p.add_argument("--gt", help="session folder with ground_truth/ (without: physics plausibility figures only)")
     p.add_argument("--json", help="where to write the figures (default OUT/eval.json)")
     p.set_defaults(func=_cmd_eval)
 

@@ -3,7 +3,12 @@ synthetic 4-device 720p rig written as Azure-Kinect-style MKVs (target >= 15 fra
 i.e. 60 camera-frames/s). The synthetic frames reuse the real recording's JPEG and depth
 (shifted per frame), so encoding sizes are realistic.
 
-    OMP_NUM_THREADS=1 python -m tools.bench_import [--frames 60] [--workers 2]
+Two figures for the rig: the wall-clock rig frames/s with the importer's default
+parallelism (one process per device, at most the CPU count; the target's figure, valid only
+on an otherwise idle machine: the load average is printed beside it) and the CPU time per
+camera-frame (all processes; independent of the machine's load).
+
+    OMP_NUM_THREADS=1 python -m tools.bench_import [--frames 60] [--workers N]
 """
 from __future__ import annotations
 
@@ -17,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from intercap.io.k4a import decode_depth, import_k4a, open_recording
+from intercap.io.k4a import decode_depth, default_workers, import_k4a, open_recording
 from intercap.synth.k4a_mkv import write_k4a_mkv
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "data" / "azure_kinect" / "recording.mkv"
@@ -33,7 +38,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--frames", type=int, default=60, help="frames per device of the synthetic rig (30 fps)")
     ap.add_argument("--devices", type=int, default=4)
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--workers", type=int, help="as `intercap import k4a --workers` (default: the importer's own)")
     args = ap.parse_args()
     import av
 
@@ -59,21 +64,25 @@ def main() -> None:
                                        start_offset_ns=1_000_000_000 + 160_000 * d,
                                        sync_mode="MASTER" if d == 0 else "SUBORDINATE"))
         mb = sum(p.stat().st_size for p in paths) / 1e6
+        load = os.getloadavg()[0]
         t, cpu = time.perf_counter(), _cpu()
         r = import_k4a(tmp / "rig", paths, uncalibrated=True, workers=args.workers)
         dt, cpu = time.perf_counter() - t, _cpu() - cpu
         per_frame = (dt - r["setup_seconds"]) / r["frames"]
-        print(f"synthetic rig: {D} devices x {n} frames 720p + NFOV depth ({mb:.0f} MB): {dt:.2f} s wall, "
-              f"setup {r['setup_seconds']:.2f} s, {r['frames'] / dt:.1f} frames/s overall, "
-              f"{1 / per_frame:.1f} frames/s after setup ({D / per_frame:.0f} camera-frames/s); "
-              f"target >= 15 frames/s")
+        how = (f"workers={r['workers']} ({r['parallel']}; "
+               f"{'default: ' + str(default_workers(D)) if args.workers is None else 'given'}) on {os.cpu_count()} CPUs")
+        print(f"synthetic rig: {D} devices x {n} frames 720p + NFOV depth ({mb:.0f} MB), {how}")
+        print(f"  wall clock: {dt:.2f} s = {r['frames'] / dt:.1f} rig frames/s overall "
+              f"({1 / per_frame:.1f} after the {r['setup_seconds']:.2f} s setup); target >= 15 frames/s; "
+              f"load average {load:.1f} before, {os.getloadavg()[0]:.1f} after (valid only when both are ~0)")
         per_cam = cpu / (r["frames"] * D)
-        print(f"CPU time (this process and its workers) {cpu:.2f} s = {per_cam * 1000:.0f} ms per camera-frame, "
-              f"all included; on {args.workers} idle cores: about {args.workers / per_cam / D:.1f} frames/s "
-              f"(wall figures above depend on the machine's load: {os.getloadavg()[0]:.1f} now)")
-        print(f"extrapolated 30 s recording (900 frames): {r['setup_seconds'] + 900 * per_frame:.0f} s "
+        print(f"  CPU time: {cpu:.2f} s in all processes = {per_cam * 1000:.1f} ms per camera-frame "
+              f"(= {1 / (per_cam * D):.1f} rig frames/s per fully used core, at most "
+              f"{min(r['workers'], os.cpu_count() or 1) / (per_cam * D):.1f} with {r['workers']} workers on idle cores)")
+        print(f"  extrapolated 30 s recording (900 frames), wall clock: {r['setup_seconds'] + 900 * per_frame:.0f} s "
               f"= {900 / (r['setup_seconds'] + 900 * per_frame):.1f} frames/s")
-        print(f"peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB; workers={args.workers}")
+        print(f"peak RSS: this process {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB, "
+              f"largest worker {resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024:.0f} MB")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 

@@ -178,6 +178,11 @@ def fit_ground_plane(
         reference = points[~on_any_plane] if (~on_any_plane).any() else points
         if (reference.mean(axis=0) - point) @ normal < 0:
             normal = -normal
+        if up is not None:  # a wall seen head-on is no floor: say so rather than return it
+            tilt = np.degrees(np.arccos(np.clip(abs(normal @ up), 0, 1)))
+            if tilt > max_angle_to_up_deg:
+                raise ValueError(f"no floor in view: the largest plane is {tilt:.0f} deg from the cameras' up "
+                                 f"(a wall?), none within {max_angle_to_up_deg:g} deg")
 
     point, normal, inliers = refine_plane(points, point, normal, distance_threshold)
     residual = (points[inliers] - point) @ normal

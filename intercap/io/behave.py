@@ -25,6 +25,16 @@ object.ply = the template centred on the mean of its vertices, exactly as BEHAVE
 (v = Rotation.from_rotvec(angle) @ (x - mean) + trans), so a fit is R = rotvec(angle), t = trans
 in our convention; ground_truth/object_poses.npz when every frame has a fit (else
 behave_object_fits.npz with a `valid` mask).
+
+Conventions, as BEHAVE's own loader states them (github xiexh20/behave-dataset):
+* data/kinect_transform.py `local2world`: world = p @ R.T + t with config.json's `rotation`
+  (reshaped 3x3, row-major) and `translation` (data/utils.py `load_kinect_poses`), so the pair
+  is our T_world_from_cam as it stands; `world2color_mesh` uses its inverse and says the
+  world is camera k1's colour frame.
+* data/kinect_calib.py `KinectCalib`: K from the colour block's fx, fy, cx, cy, and the
+  distortion handed to cv2.projectPoints is `opencv[4:]` (OpenCV's order k1, k2, p1, p2, k3,
+  k4, k5, k6); `opencv[:4]` is not read there and not here.
+tests/io/test_dataset_conventions.py checks both on a fixture against cv2 directly.
 """
 from __future__ import annotations
 
@@ -97,7 +107,8 @@ def read_behave_camera(calib_dir: Path | None, info: dict, seq: Path, date: str,
 
 
 def behave_dist(color: dict) -> list[float]:
-    """OpenCV distortion from BEHAVE's colour block: opencv[4:] (k1, k2, p1, p2, k3[, k4, k5, k6])."""
+    """OpenCV distortion from BEHAVE's colour block: opencv[4:] (k1, k2, p1, p2, k3[, k4, k5, k6]),
+    as BEHAVE's data/kinect_calib.py passes it to cv2.projectPoints."""
     opencv = color.get("opencv")
     if opencv is None:
         return []

@@ -18,6 +18,15 @@ calibration.json in InterCap's world (camera 1's colour frame; OpenCV axes; metr
 frame ids are InterCap's own frame numbers, so results line up with their files by index;
 object.ply = the template centred on its vertex mean (so their fits are R = rotvec(ob_pose),
 t = ob_trans in our convention); ground_truth/object_poses.npz from --fits when given.
+
+Calibration direction, as InterCap's own code states it (github YinghaoHuang91/InterCap):
+prox_first/prox/camera.py `PerspectiveCamera` builds its camera transform from
+cv2.Rodrigues(R) and T and applies it to world points (x_cam = Rodrigues(R) @ x + T: world to
+camera), and obj_track/utils.py `create_renderers` hard-codes the camera-to-world matrices
+(MATs) that invert Data/calibration_first/Color_3.json (Rodrigues(R)^T and -Rodrigues(R)^T T
+reproduce its MATs[2] to 6 decimals); the same file's distortion table `Ks` equals the
+files' `k` (k1, k2, p1, p2, k3, k4, k5, k6: the tangential terms are the two small ones).
+tests/io/test_dataset_conventions.py checks it on a fixture against cv2.projectPoints.
 """
 from __future__ import annotations
 
@@ -71,7 +80,8 @@ def rotation_from_rodrigues(r) -> np.ndarray:
 
 
 def read_intercap_camera(path: Path) -> tuple[np.ndarray, list[float], np.ndarray]:
-    """(K (3, 3), dist, T_world_from_cam (4, 4)) of one Color*.json."""
+    """(K (3, 3), dist, T_world_from_cam (4, 4)) of one Color*.json; its R, T map world to camera
+    (InterCap's prox_first/prox/camera.py), so T_world_from_cam is their inverse."""
     data = read_json_file(path)
     try:
         (fx, fy), (cx, cy) = data["f"], data["c"]

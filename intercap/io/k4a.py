@@ -197,6 +197,13 @@ def _rig_poses(recordings, names, calibration_file, uncalibrated: bool):
     return [np.eye(4) for _ in range(D)], names[1:]
 
 
+def default_workers(devices: int) -> int:
+    """Worker count when none is given: one process per device of a rig (at most the CPU
+    count), two threads for a single recording."""
+    cpus = os.cpu_count() or 1
+    return max(1, min(devices if devices > 1 else 2, cpus))
+
+
 def _import_device(rec: Recording, size, lens, cam_dir: Path, frames: list[int], wanted, threads: int) -> None:
     """Write one device's frames: colour as recorded (or re-encoded when resized or raw) and
     depth registered to it. `frames[k]` is the session index of the k-th `wanted` block pair."""
@@ -246,14 +253,18 @@ def import_k4a(
     color_resolution=None,
     calibration=None,
     uncalibrated: bool = False,
-    workers: int = 2,
+    workers: int | None = None,
     overwrite: bool = False,
 ) -> dict:
     """Import Azure Kinect recordings into a session folder; returns a summary dict
-    (frames, per-camera drops, timings). Written to a hidden folder beside
-    `out_session` and renamed at the end, so a failure leaves no half session."""
-    import time
+    (frames, per-camera drops, timings, workers used). Written to a hidden folder beside
+    `out_session` and renamed at the end, so a failure leaves no half session.
 
+    workers: a rig is imported by one process per device (at most `workers` at a time;
+    default: one per device, at most the CPU count), each streaming its recording with a
+    bounded queue, so memory does not grow with the recording's length; a single recording
+    uses `workers` threads (default: 2, at most the CPU count)."""
+    import time
 
     t0 = time.perf_counter()
     out = Path(out_session)
@@ -263,6 +274,9 @@ def import_k4a(
     recs = [open_recording(p) for p in recordings]
     if not recs:
         raise K4AError("no recording given")
+    workers = default_workers(len(recs)) if workers is None else int(workers)
+    if workers < 1:
+        raise K4AError(f"--workers must be >= 1, got {workers}")
     names = [f"cam{d}" for d in range(len(recs))]
     poses, placeholders = _rig_poses(recs, names, calibration, uncalibrated)
     al = align(recs)
@@ -331,4 +345,5 @@ def import_k4a(
         raise
     return {"frames": int(sel.size), "cameras": names, "dropped": dropped, "frames_without_depth": no_depth,
             "fps": fps, "seconds": time.perf_counter() - t0, "setup_seconds": t_setup,
-            "placeholder_poses": placeholders}
+            "placeholder_poses": placeholders, "workers": workers,
+            "parallel": "processes" if len(recs) > 1 and workers > 1 else ("threads" if workers > 1 else "none")}

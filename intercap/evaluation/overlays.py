@@ -11,7 +11,8 @@ against the session's masks pixel for pixel (`silhouette_iou`).
 Body regions in contact (OUT/contact/contact.npz: `region_contact`, `region_vertex_ids`)
 are tinted. Per stage (`object`, `body`, `global`) every `report.overlay_every`-th frame
 is drawn in every view (OUT/report/overlays/<stage>/<frame>_<camera>.jpg) and one camera
-over the whole sequence goes into an MP4 (PyAV, H.264).
+over the whole sequence goes into a video (PyAV; VP9 in WebM by default, which Chromium
+builds without proprietary codecs play too; H.264 MP4 on request).
 """
 from __future__ import annotations
 
@@ -187,6 +188,55 @@ def silhouette_iou(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.count_nonzero(a & b) / union) if union else float("nan")
 
 
+@dataclass
+class SilhouetteScores:
+    """Rendered silhouettes against the session's masks, per frame and view: intersection and union
+    pixel counts (F, C) of the body with the person mask and of the object with the object mask
+    (-1 where the mask file is missing, or the object is hidden: fewer than `min_object_px` in its mask).
+    A result with one mesh only is compared outside the other's mask (see `overlap_counts`)."""
+
+    frames: np.ndarray  # (F,) frame indices
+    body_inter: np.ndarray
+    body_union: np.ndarray
+    object_inter: np.ndarray
+    object_union: np.ndarray
+
+    @staticmethod
+    def pooled(inter: np.ndarray, union: np.ndarray) -> float:
+        """IoU over every scored frame and view together (NaN when none)."""
+        ok = union > 0
+        return float(inter[ok].sum() / union[ok].sum()) if ok.any() else float("nan")
+
+    @property
+    def body_iou(self) -> float:
+        return self.pooled(self.body_inter, self.body_union)
+
+    @property
+    def object_iou(self) -> float:
+        return self.pooled(self.object_inter, self.object_union)
+
+
+def silhouette_scores(session, meshes: "StageMeshes", frames, renderer: OverlayRenderer,
+                      min_object_px: int = 20) -> SilhouetteScores:
+    """Render a stage's meshes in every view of `frames` (indices) and count the overlap of the
+    visible silhouettes (each occluding the other, like the masks) with the session's masks."""
+    frames = np.asarray(list(frames), int)
+    have_body, have_object = meshes.body_vertices is not None, meshes.object_R is not None
+    counts = np.full((len(frames), session.num_cameras, 2, 2), -1, np.int64)
+    for k, i in enumerate(frames):
+        fid = int(session.frame_ids[i])
+        body = None if meshes.body_vertices is None else np.asarray(meshes.body_vertices[i])
+        renderer.set_frame(body, meshes.body_faces, None, meshes.object_pose(i))
+        for c in range(session.num_cameras):
+            out = renderer.render(c)
+            person, thing = session.read_mask(c, fid, "person"), session.read_mask(c, fid, "object")
+            got = overlap_counts(out, person if have_body else None, thing if have_object else None,
+                                 hidden_body=thing if not have_object else None,
+                                 hidden_object=person if not have_body else None, min_object_px=min_object_px)
+            counts[k, c] = np.where(got[:, 1:] > 0, got, -1)  # nothing scored: -1
+    return SilhouetteScores(frames, counts[..., 0, 0], counts[..., 0, 1], counts[..., 1, 0], counts[..., 1, 1])
+
+
 # -- what a stage saved --------------------------------------------------------------------
 @dataclass
 class StageMeshes:
@@ -252,11 +302,14 @@ def body_colours(num_vertices: int, touching: np.ndarray | None, region_ids: lis
 # -- drawing a stage -----------------------------------------------------------------------
 def render_overlays(session, out_dir, stage: str, report_dir, every: int = 10, alpha: float = 0.6,
                     video_camera: str | int | None = 0, video: bool = True, object_mesh=None,
-                    renderer: OverlayRenderer | None = None, progress: bool = True) -> dict:
-    """Overlay images of one stage (every `every`-th frame, every view) and an MP4 of one camera.
+                    renderer: OverlayRenderer | None = None, progress: bool = True, codec: str = "vp9") -> dict:
+    """Overlay images of one stage (every `every`-th frame, every view) and a video of one camera
+    (`codec`: a key of VIDEO_CODECS).
 
-    Returns {"images": [(frame_id, camera, relative path)], "video": relative path or None}; an
-    empty dict when the stage has not run. Paths are relative to `report_dir`."""
+    Returns {"images": [(frame_id, camera, relative path)], "video": relative path or None,
+    "iou": {"body": .., "object": ..} the silhouettes' IoU with the session's masks over the drawn
+    frames and views (pooled; only kinds with masks)}; an empty dict when the stage has not run.
+    Paths are relative to `report_dir`."""
     meshes = load_stage_meshes(out_dir, stage)
     if meshes is None:
         return {}
@@ -285,6 +338,7 @@ def render_overlays(session, out_dir, stage: str, report_dir, every: int = 10, a
     writer = None
     images = []
     video_rel = None
+    counts = np.zeros((2, 2), np.int64)  # body, object x intersection, union with the session's masks
     try:
         for i in tqdm(frames, desc=f"overlays {stage}", unit="frame", disable=not progress):
             fid = int(session.frame_ids[i])
@@ -300,8 +354,10 @@ def render_overlays(session, out_dir, stage: str, report_dir, every: int = 10, a
                 image = session.read_color(c, fid)
                 if image is None:
                     image = np.zeros((cam.height, cam.width, 3), np.uint8)
-                out = blend(image, renderer.render(c, silhouettes=i in shown), alpha)
+                rendered = renderer.render(c, silhouettes=i in shown)
+                out = blend(image, rendered, alpha)
                 if i in shown:
+                    _count_overlap(session, c, fid, rendered, meshes, counts)
                     rel = Path("overlays") / stage / f"{fid:06d}_{cam.name}.jpg"
                     (report_dir / rel).parent.mkdir(parents=True, exist_ok=True)
                     cv2.imwrite(str(report_dir / rel), cv2.cvtColor(out, cv2.COLOR_RGB2BGR),
@@ -309,26 +365,78 @@ def render_overlays(session, out_dir, stage: str, report_dir, every: int = 10, a
                     images.append((fid, cam.name, rel.as_posix()))
                 if c == cam_video:
                     if writer is None:
-                        video_rel = f"{stage}_{cam.name}.mp4"
-                        writer = VideoWriter(report_dir / video_rel, session.fps)
+                        video_rel = video_name(f"{stage}_{cam.name}", codec)
+                        writer = VideoWriter(report_dir / video_rel, session.fps, codec)
                     writer.write(out)
     finally:
         if writer is not None:
             writer.close()
         if own:
             renderer.close()
-    return {"images": images, "video": video_rel}
+    iou = {k: float(counts[j, 0] / counts[j, 1]) for j, k in enumerate(("body", "object")) if counts[j, 1] > 0}
+    return {"images": images, "video": video_rel, "iou": iou}
+
+
+def _count_overlap(session, c: int, fid: int, rendered: Rendered, meshes: StageMeshes, counts: np.ndarray,
+                   min_object_px: int = 20) -> None:
+    """Add one view's silhouette overlap with the session's person / object masks to counts (2, 2)
+    (see `overlap_counts`)."""
+    have_body, have_object = meshes.body_vertices is not None, meshes.object_R is not None
+    person = session.read_mask(c, fid, "person") if have_body or have_object else None
+    thing = session.read_mask(c, fid, "object") if have_body or have_object else None
+    counts += overlap_counts(rendered, person if have_body else None, thing if have_object else None,
+                             hidden_body=thing if not have_object else None,
+                             hidden_object=person if not have_body else None, min_object_px=min_object_px)
+
+
+def overlap_counts(rendered: Rendered, person, thing, hidden_body=None, hidden_object=None,
+                   min_object_px: int = 20) -> np.ndarray:
+    """(2, 2) intersection and union pixel counts of the rendered body with the person mask and of the
+    object with the object mask (zeros where a mask is None; the object's also where its mask has
+    fewer than `min_object_px`: hidden). A result with only one of the meshes cannot occlude with the
+    other, as the masks do: pixels where the other's mask lies (`hidden_body`: the object mask for a
+    body-only result, `hidden_object`: the person mask) are left out of the comparison."""
+    counts = np.zeros((2, 2), np.int64)
+    for j, (mask, sil, hidden) in enumerate(((person, rendered.body, hidden_body),
+                                             (thing, rendered.object, hidden_object))):
+        if mask is None or sil is None or (j == 1 and np.count_nonzero(mask) < min_object_px):
+            continue
+        if hidden is not None:
+            sil, mask = sil & ~hidden, mask & ~hidden
+        counts[j] = np.count_nonzero(sil & mask), np.count_nonzero(sil | mask)
+    return counts
+
+
+VIDEO_CODECS = {  # name -> (PyAV encoder, container suffix, pixel format, encoder options)
+    # VP9 in WebM: every browser plays it, Chromium builds without proprietary codecs too
+    "vp9": ("libvpx-vp9", ".webm", "yuv420p", {"crf": "32", "b": "0", "deadline": "realtime", "cpu-used": "8",
+                                                "row-mt": "1"}),
+    # H.264 in MP4: for editors, players and Safari; Chromium builds without proprietary codecs do not play it
+    # (Debian 12's chromium 156 does: checked with tests/evaluation/cdp_browser.py)
+    "h264": ("libx264", ".mp4", "yuv420p", {"crf": "23", "preset": "veryfast"}),
+}
+
+
+def video_name(stem: str, codec: str = "vp9") -> str:
+    """The video's file name for a codec of VIDEO_CODECS (its container's suffix)."""
+    if codec not in VIDEO_CODECS:
+        raise ValueError(f"unknown video codec {codec!r} (one of {', '.join(VIDEO_CODECS)})")
+    return stem + VIDEO_CODECS[codec][1]
 
 
 class VideoWriter:
-    """H.264 MP4 (yuv420p, so browsers play it) of RGB frames, with PyAV; frames padded to even sizes."""
+    """A video of RGB frames with PyAV: VP9/WebM by default (plays in any browser), or H.264/MP4
+    (`codec`, see VIDEO_CODECS); frames padded to even sizes (yuv420p); written atomically."""
 
-    def __init__(self, path, fps: float):
+    def __init__(self, path, fps: float, codec: str = "vp9"):
         import av
 
+        if codec not in VIDEO_CODECS:
+            raise ValueError(f"unknown video codec {codec!r} (one of {', '.join(VIDEO_CODECS)})")
+        self.codec = codec
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self.tmp = self.path.with_name(f".{self.path.name}.part.mp4")
+        self.tmp = self.path.with_name(f".{self.path.name}.part{VIDEO_CODECS[codec][1]}")
         self.container = av.open(str(self.tmp), mode="w")
         self.fps = fps
         self.stream = None
@@ -341,10 +449,11 @@ class VideoWriter:
         if self.stream is None:
             from fractions import Fraction
 
-            self.stream = self.container.add_stream("libx264", rate=Fraction(self.fps).limit_denominator(1000))
+            encoder, _, pix_fmt, options = VIDEO_CODECS[self.codec]
+            self.stream = self.container.add_stream(encoder, rate=Fraction(self.fps).limit_denominator(1000))
             self.stream.width, self.stream.height = rgb.shape[1], rgb.shape[0]
-            self.stream.pix_fmt = "yuv420p"
-            self.stream.options = {"crf": "23", "preset": "veryfast"}
+            self.stream.pix_fmt = pix_fmt
+            self.stream.options = dict(options)
         frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(rgb), format="rgb24")
         for packet in self.stream.encode(frame):
             self.container.mux(packet)

@@ -6,7 +6,7 @@ contact per body region, penetration, body and object acceleration, physics forc
 InterCap-style figures (penetration CDF, contact heat map on the rest body), overlay
 thumbnails linking to the full images beside the page, and with ground truth the evaluation
 table and error-over-time curves. Figures are PNGs embedded as base64; the overlay images
-and the MP4 sit in OUT/report/ (relative links), so the folder opens without a network.
+and the video sit in OUT/report/ (relative links), so the folder opens without a network.
 
 Everything is computed from saved arrays; a stage that has not run shows "not run". The
 session path comes from the caller, else from OUT/run.json (written by `intercap run`) or
@@ -461,7 +461,7 @@ def _overlay_strip(report_dir: Path, images: list, width: int) -> str:
 
 
 def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True) -> Path:
-    """Write OUT/report/index.html (and the overlay images and MP4 beside it); returns its path.
+    """Write OUT/report/index.html (and the overlay images and video beside it); returns its path.
 
     session: a Session or its path (default: found as `find_session` says); gt: a session folder
     with ground_truth/ for the evaluation section; cfg: an intercap Config (default: OUT/config.yaml
@@ -490,6 +490,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     metrics = _json(out_dir / "metrics.json") or {}
     steps = ["summary", "overlays", "curves", "contact", "penetration", "motion", "physics", "evaluation"]
     bar = tqdm(total=len(steps), desc="report", unit="section", disable=not progress)
+    bar.set_postfix_str(steps[0])
 
     # session summary
     if session is None:
@@ -536,7 +537,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
         page.not_run("calibration", "Calibration check", "no OUT/prepare/calibration_check.json (stage prepare)")
     else:
         cols = ["cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_translation_mm",
-                "correction_rotation_deg", "fitness", "unobservable"]
+                "translation_sigma_mm", "correction_rotation_deg", "rotation_sigma_deg", "flagged", "unobservable"]
         flagged = calib.get("flagged") or []
         msg = (f'<p class="warn">{len(flagged)} camera pair(s) disagree by more than {calib.get("warn_mm")} mm: '
                "check the calibration</p>") if flagged else "<p>no camera pair flagged</p>"
@@ -544,7 +545,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
                  f"<p>ICP between neighbouring cameras' clouds, frames {calib.get('frames')}</p>"
                  + table(calib.get("pairs") or [], [c for c in cols if any(c in p for p in calib.get("pairs") or [])])
                  + msg)
-    bar.update(1)
+    _advance(bar, steps)
 
     # overlays
     stages = {s: load_stage_meshes(out_dir, s) for s in OVERLAY_STAGES}
@@ -552,7 +553,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
         page.not_run("overlays", "Mesh overlays", "needs the session's colour images")
     else:
         page.add("overlays", "Mesh overlays", _overlays_section(session, out_dir, report_dir, stages, rcfg, progress))
-    bar.update(1)
+    _advance(bar, steps)
 
     T = session.num_frames if session is not None else _frames_in(stages)
     fids = np.asarray(session.frame_ids) if session is not None else np.arange(T)
@@ -566,24 +567,24 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
         surface = TriangleSurface(mesh.vertices, mesh.faces)
 
     page.add("curves", "Per-frame fit", _fit_section(session, out_dir, stages, frames, T, fids, mesh, rcfg))
-    bar.update(1)
+    _advance(bar, steps)
     page.add("contact", "Contact", _contact_section(out_dir, stages, frames, fids, mesh, rcfg))
-    bar.update(1)
+    _advance(bar, steps)
     page.add("penetration", "Penetration", _penetration_section(stages, frames, fids, surface, out_dir, gt))
-    bar.update(1)
+    _advance(bar, steps)
     page.add("motion", "Motion (acceleration)", _motion_section(stages, frames, fids, fps, mesh, gt))
-    bar.update(1)
+    _advance(bar, steps)
     physics = _npz(out_dir / "physics" / "physics.npz")
     if physics is None:
         page.not_run("physics", "Physics", "no OUT/physics/physics.npz (stage physics)")
     else:
         page.add("physics", "Physics", _physics_section(physics, fids))
-    bar.update(1)
+    _advance(bar, steps)
     if gt is not None:
         page.add("evaluation", "Evaluation against ground truth", _evaluation_section(out_dir, gt, fids))
     else:
         page.not_run("evaluation", "Evaluation against ground truth", "no ground truth given (--gt SESSION)")
-    bar.update(1)
+    _advance(bar, steps)
     bar.close()
 
     seconds = time.perf_counter() - start
@@ -595,6 +596,13 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     tmp.replace(path)
     log.info("report: %s (%.1f s)", path, seconds)
     return path
+
+
+def _advance(bar, steps: list[str]) -> None:
+    """Count a finished section on the progress bar and name the next (the evaluation can take a while)."""
+    bar.update(1)
+    if bar.n < len(steps):
+        bar.set_postfix_str(steps[bar.n])
 
 
 def _frames_in(stages: dict) -> int:
@@ -622,12 +630,16 @@ def _overlays_section(session, out_dir, report_dir, stages, rcfg, progress) -> s
                 renderer = OverlayRenderer(session.cameras, mesh)
             res = render_overlays(session, out_dir, stage, report_dir, every=rcfg.overlay_every, alpha=rcfg.alpha,
                                   video_camera=rcfg.video_camera or 0, video=stage == video_stage,
-                                  renderer=renderer, progress=progress)
+                                  renderer=renderer, progress=progress, codec=rcfg.video_codec)
             html_part = f"<h3>{stage}</h3>"
             if res.get("video"):
-                html_part += (f'<p><video controls loop muted width="{min(640, session.cameras[0].width * 2)}" '
-                              f'src="{html.escape(res["video"])}"></video><br><a href="{html.escape(res["video"])}">'
-                              f'{html.escape(res["video"])}</a> (the whole sequence, one camera)</p>')
+                rel = html.escape(res["video"])
+                html_part += (f'<p><video controls loop muted preload="auto" '
+                              f'width="{min(640, session.cameras[0].width * 2)}" src="{rel}"></video><br>'
+                              f'<a href="{rel}">{rel}</a> (the whole sequence, one camera)</p>')
+            if res.get("iou"):
+                html_part += ("<p>silhouette IoU with the session's masks (drawn frames, all views): "
+                              + ", ".join(f"{k} {v:.3f}" for k, v in res["iou"].items()) + "</p>")
             html_part += _overlay_strip(report_dir, res.get("images", []), rcfg.thumbnail_width)
             parts.append(html_part)
     finally:

@@ -11,7 +11,8 @@ if TYPE_CHECKING:
     from intercap.evaluation.evaluate import EvalResult
 
 
-_UNITS = (("_frames_missing", "frames"), ("_mm", "mm"), ("_deg", "deg"), ("_pct", "%"), ("_mps2", "m/s^2"))
+_UNITS = (("_frames_missing", "frames"), ("_frames", "frames"), ("_mm_s", "mm/s"), ("_mm", "mm"), ("_kg", "kg"),
+          ("_nm", "N m"), ("_n", "N"), ("_deg", "deg"), ("_pct", "%"), ("_mps2", "m/s^2"))
 
 
 def _unit(name: str) -> str:
@@ -27,6 +28,8 @@ def format_table(result: EvalResult) -> str:
     for name, value in result.metrics.items():
         if value is None:
             text = "n/a"
+        elif isinstance(value, str):
+            text = value
         elif isinstance(value, (int, np.integer)):
             text = str(int(value))
         else:

@@ -56,15 +56,6 @@ def _require_viser():
 
 
 @dataclass
-class Camera:
-    name: str
-    width: int
-    height: int
-    K: np.ndarray  # (3, 3)
-    T_world_from_cam: np.ndarray  # (4, 4)
-
-
-@dataclass
 class ViewData:
     """What the viewer shows, loaded once (arrays indexed by frame like frame_ids)."""
 
@@ -82,7 +73,7 @@ class ViewData:
     region_names: list[str] = field(default_factory=list)
     region_contact: np.ndarray | None = None  # (T, R) bool
     ground: tuple[np.ndarray, np.ndarray] | None = None  # point, unit normal
-    cameras: list[Camera] = field(default_factory=list)
+    cameras: list = field(default_factory=list)  # the session's CameraInfo (intercap.session), with distortion
     physics: dict | None = None  # hand_force (T,2,3), foot_force (T,2,3), foot_cop (T,2,3)
     keypoints3d: np.ndarray | None = None  # (T, 67, 3)
     cloud_files: dict[int, Path] = field(default_factory=dict)  # frame id -> OUT/prepare/clouds/*.ply
@@ -111,6 +102,19 @@ def find_session(out_dir: Path, given: str | Path | None) -> Path | None:
     return None
 
 
+def read_cameras(root: Path) -> list:
+    """The session's calibration.json as CameraInfo records (the session reader's parser and checks,
+    without scanning the frame folders as `Session.load` does)."""
+    from intercap.session.format import read_calibration
+    from intercap.session.problems import ProblemList
+
+    problems = ProblemList(root)
+    cameras = read_calibration(root, problems)
+    if problems.any_fatal:
+        raise ViewerError("; ".join(f"{root / p.path}: {p.message}" for p in problems if p.fatal))
+    return [cam for _, cam in cameras]
+
+
 def _read_ply_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) float32 points and (N, 3) uint8 colours of a PLY cloud (grey when uncoloured)."""
     import trimesh
@@ -136,9 +140,7 @@ def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> Vi
     if root is not None:
         meta = yaml.safe_load((root / "session.yaml").read_text()) or {}
         fps = float(meta.get("fps", fps))
-        calib = json.loads((root / "calibration.json").read_text())
-        cameras = [Camera(c["name"], int(c["width"]), int(c["height"]), np.asarray(c["K"], float),
-                          np.asarray(c["T_world_from_cam"], float)) for c in calib["cameras"]]
+        cameras = read_cameras(root)
         if meta.get("object", {}).get("mesh"):
             obj_mesh = root / meta["object"]["mesh"]
         frames = meta.get("frames") or {}
@@ -333,7 +335,7 @@ class FrameSource:
 
         from intercap.geometry.cameras import Cameras, depth_to_point_grid, pixel_rays
 
-        cams = Cameras.from_infos(self._camera_infos())
+        cams = Cameras.from_infos(self.data.cameras)
         sizes = {(c.height, c.width) for c in self.data.cameras}
         if len(sizes) != 1:
             log.warning("viewer: cameras of different sizes; depth clouds only from OUT/prepare/clouds")
@@ -346,18 +348,6 @@ class FrameSource:
             return points.numpy(), valid.numpy()
 
         self._backproject = backproject
-
-    def _camera_infos(self):
-        """calibration.json's records with the distortion, as `Cameras.from_infos` reads them."""
-        calib = json.loads((self.data.session_root / "calibration.json").read_text())
-
-        class Info:
-            def __init__(self, c):
-                self.name, self.width, self.height = c["name"], int(c["width"]), int(c["height"])
-                self.K, self.dist = np.asarray(c["K"], float), np.asarray(c.get("dist") or [], float)
-                self.T_world_from_cam = np.asarray(c["T_world_from_cam"], float)
-
-        return [Info(c) for c in calib["cameras"]]
 
     def cloud(self, i: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(N, 3) points and (N, 3) uint8 colours of frame i, or None when not available (yet)."""

@@ -6,6 +6,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 QUERY_CHUNK = 20000  # points per closest-triangle batch (bounds memory)
+PARALLEL_QUERY = 8192  # KD-tree queries of fewer points run on one thread (starting threads costs more)
 
 
 def closest_points_on_triangles(p, a, b, c):
@@ -100,9 +101,10 @@ class TriangleSurface:
     def _closest_faces(self, p):
         """Index (N,) of the triangle closest to each point (N, 3)."""
         n = len(p)
+        workers = -1 if n >= PARALLEL_QUERY else 1
         cand, kth = [], []
         for ids, tree, _, k in self.groups:
-            dk, j = tree.query(p, k, workers=-1)
+            dk, j = tree.query(p, k, workers=workers)
             cand.append(ids[j.reshape(n, -1)])
             kth.append(dk.reshape(n, -1)[:, -1] if k < len(ids) else np.full(n, np.inf))
         cand = np.concatenate(cand, axis=1)  # (N, C)
@@ -118,7 +120,7 @@ class TriangleSurface:
             unsure = np.flatnonzero(dk - r_max < best_d)
             if len(unsure) == 0:
                 continue
-            balls = tree.query_ball_point(p[unsure], best_d[unsure] + r_max, workers=-1)
+            balls = tree.query_ball_point(p[unsure], best_d[unsure] + r_max, workers=workers)
             counts = np.fromiter((len(b) for b in balls), np.int64, len(balls))
             if counts.sum() == 0:
                 continue

@@ -30,6 +30,9 @@ def make_gt_results(out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     for name in ("body_vertices.npy", "body_faces.npy", "object_poses.npz", "contact.npy", "keypoints3d.npy"):
         shutil.copy(gt / name, out / name)
+    (out / "global").mkdir(exist_ok=True)  # the stage layout the report's overlays and video read
+    for name in ("body_vertices.npy", "body_faces.npy", "object_poses.npz"):
+        shutil.copy(gt / name, out / "global" / name)
     ground = json.loads((gt / "ground.json").read_text())
     (out / "prepare").mkdir(exist_ok=True)
     (out / "prepare" / "ground.json").write_text(json.dumps({**ground, "inlier_ratio": 1.0, "rmse_m": 0.0,
@@ -168,6 +171,14 @@ def test_report_renders_in_chromium(gt_out, tmp_path):
     with Browser(1100, 1400) as browser:
         browser.open(page.resolve().as_uri())
         browser.pump(1.0)
+        # the overlay video (VP9 WebM by default) decodes and plays in the page
+        playable = browser.wait_for("(() => { const v = document.querySelector('video');"
+                                    " return !!v && (v.readyState >= 2 || v.error !== null); })()", 20)
+        browser.evaluate("document.querySelector('video').play().then(() => true, () => false)")
+        browser.wait_for("document.querySelector('video').currentTime > 0", 10)
+        video = browser.evaluate("(() => { const v = document.querySelector('video'); return {src: v.currentSrc,"
+                                 " ready: v.readyState, duration: v.duration, error: v.error && v.error.code,"
+                                 " time: v.currentTime, width: v.videoWidth}; })()")
         images = browser.evaluate("Array.from(document.images).map(i => [i.src.slice(0, 40), i.complete, "
                                   "i.naturalWidth])")
         resources = browser.evaluate("performance.getEntriesByType('resource').map(e => e.name)")
@@ -176,6 +187,9 @@ def test_report_renders_in_chromium(gt_out, tmp_path):
         errors = list(browser.errors)
     shutil.copy(shot, tmp_path / "report.png")
     assert not errors, errors
+    print(f"report video: {video}")
+    assert playable and video["error"] is None and video["ready"] >= 2, video
+    assert video["duration"] > 0 and video["time"] > 0 and video["width"] == 320, video
     assert images and all(ok and w > 0 for _, ok, w in images), images
     assert not [r for r in resources if r.startswith(("http:", "https:"))], resources
     assert "frame" in text.lower() and len(text) > 200

@@ -73,8 +73,10 @@ def results_from_ground_truth(session_dir, out):
         "pairs": [{"cam_a": "cam0", "cam_b": "cam1", "icp_rmse_mm": 3.0, "correction_translation_mm": 0.4}]}))
     (out / "physics").mkdir()
     np.savez(out / "physics" / "physics.npz", frame_ids=np.arange(T), hand_force=np.ones((T, 2, 3)),
-             foot_force=np.full((T, 2, 3), 200.0), residual_force=np.zeros((T, 3)), valid=np.ones(T, bool),
-             body_mass_kg=np.array(70.0), object_mass_kg=np.array(1.2), flight_episodes=np.zeros((0, 2), int))
+             foot_force=np.full((T, 2, 3), 200.0), residual_force=np.zeros((T, 3)), residual_torque=np.zeros((T, 3)),
+             object_residual_force=np.zeros((T, 3)), valid=np.ones(T, bool), gravity=np.array([0.0, 0.0, -9.81]),
+             body_mass_kg=np.array(70.0), object_mass_kg=np.array(1.2), flight_episodes=np.zeros((0, 2), int),
+             flight_acceleration=np.zeros((0, 3)), flight_gravity_angle_deg=np.zeros(0))
     metrics = {s: {"seconds": 1.5, "seconds_per_frame": 0.1} for s in ("prepare", "object", "body", "contact", "global")}
     (out / "metrics.json").write_text(json.dumps(metrics))
     for s in metrics:
@@ -98,7 +100,7 @@ def test_report_on_a_partial_results_folder(session_dir, tmp_path):
     assert "not run" in _section(html, "penetration")
     overlays = _section(html, "overlays")
     assert 'href="overlays/object/000000_cam0.jpg"' in overlays and "overlays/body/" not in overlays
-    assert (out / "report" / "object_cam0.mp4").is_file()  # the last stage that ran
+    assert (out / "report" / "object_cam0.webm").is_file()  # the last stage that ran
     stages = _section(html, "stages")
     assert stages.count("not run") >= 5  # every stage but object (present, no DONE.json)
 
@@ -126,7 +128,7 @@ def test_report_from_ground_truth(session_dir, tmp_path):
     assert len(links) == 3 * 2 * 4  # stages object, body, global x frames 0, 7 x 4 cameras
     assert "done" in _section(html, "stages")
     assert all((out / "report" / rel).is_file() for rel in links)
-    assert (out / "report" / "global_cam0.mp4").is_file()
+    assert (out / "report" / "global_cam0.webm").is_file()
     # the ground truth evaluated against itself
     rows = dict(re.findall(r"<tr><td>(\w+)</td><td>([^<]*)</td></tr>", _section(html, "evaluation")))
     assert float(rows["body_surface_mm"]) < 0.5 and float(rows["object_add_mm"]) < 1e-3

@@ -8,7 +8,9 @@
 2. Static hold with Kinect-like noise (intercap.synth.physics_cases): hand force sum vs m g and
    ground reaction vs (M + m) g (%, mean and worst frame), residual root force (% body weight),
    stage speed (s/frame without and with the body model's construction), peak RSS.
-3. Toss / hold / drop sessions of the synthetic generator, when given (`--results OUT...`: results
+3. `--gt-motion DIR`: the stage on the ground-truth motion of every generator script (tiny one-camera
+   sessions generated into DIR once, 30 fps): residual root force (% body weight) per script.
+4. Toss / hold / drop sessions of the synthetic generator, when given (`--results OUT...`: results
    folders of `intercap run` on those sessions): their physics figures from metrics.json.
 """
 from __future__ import annotations
@@ -104,12 +106,81 @@ def bench_static_hold(frames: int, noise_m: float = 0.002, noise_rad: float = 0.
     return out
 
 
+def gt_motion_results(script: str, root: Path, fps: float = 30.0, ik_iters: int = 30) -> tuple[Path, Path]:
+    """A tiny session of a generator script (one 64x48 camera: the motion is what matters) and a
+    results folder holding its ground-truth motion as if fitted: body_params, object_poses,
+    contact labels per hand (the script's hands on its contact frames) and the floor."""
+    import shutil
+
+    from intercap.synth.generator import SynthConfig, generate_session
+    from intercap.synth.motions import get_script
+
+    session = root / script
+    if not (session / "ground_truth" / "body_params.npz").exists():
+        cfg = SynthConfig(script=script, fps=fps, cameras=1, width=64, height=48, keypoints=False, masks=False,
+                          walls=False, ik_iters=ik_iters, quiet=True)
+        generate_session(cfg, session)
+    out = root / f"{script}_out"
+    out.mkdir(parents=True, exist_ok=True)
+    gt = session / "ground_truth"
+    for name in ("object_poses.npz", "contact.npy"):
+        shutil.copy(gt / name, out / name)
+    with np.load(gt / "body_params.npz") as z:
+        params = {k: z[k] for k in z.files}
+    T = len(params["transl"])
+    np.savez(out / "body_params.npz", valid=np.ones(T, bool), **params)
+    (out / "prepare").mkdir(exist_ok=True)
+    shutil.copy(gt / "ground.json", out / "prepare" / "ground.json")
+    contact = np.load(gt / "contact.npy").astype(bool)
+    hands = get_script(script).hands
+    names = ["left_hand", "right_hand"]
+    rc = np.stack([contact & any(h.lower().startswith(s) for h in hands) for s in ("l", "r")], 1)
+    (out / "contact").mkdir(exist_ok=True)
+    np.savez(out / "contact" / "contact.npz", contact=contact, region_names=np.array(names), region_contact=rc)
+    return session, out
+
+
+SCRIPTS = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop")
+
+
+def bench_gt_motion(root: Path, scripts=SCRIPTS, fps: float = 30.0) -> list[dict]:
+    """The physics stage on each script's ground-truth motion: residual root force (% body weight)."""
+    from intercap.session import Session
+    from intercap.stages import physics
+
+    rows = []
+    for script in scripts:
+        session, out = gt_motion_results(script, root, fps)
+        tick = time.perf_counter()
+        f = physics.analyse(out, Session.load(session))
+        rows.append({"script": script, "frames": int(f["frames_valid"]),
+                     **{k: f.get(k) for k in ("residual_root_force_pct_bw_mean", "residual_root_force_pct_bw_p95",
+                                              "friction_cone_violation_pct", "foot_skating_mm_s",
+                                              "ground_penetration_mm_max", "flight_episodes")},
+                     "s_per_frame": (time.perf_counter() - tick) / max(f["frames_valid"], 1)})
+    return rows
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=90)
     ap.add_argument("--skip-filters", action="store_true")
     ap.add_argument("--results", nargs="*", default=[], help="results folders of toss/hold/drop runs")
+    ap.add_argument("--gt-motion", metavar="DIR", help="run the stage on the ground-truth motion of every generator "
+                    "script (sessions generated into DIR once, at --fps) and print the residual table")
+    ap.add_argument("--scripts", default=",".join(SCRIPTS))
+    ap.add_argument("--fps", type=float, default=30.0)
     args = ap.parse_args(argv)
+    if args.gt_motion:
+        rows = bench_gt_motion(Path(args.gt_motion), args.scripts.split(","), args.fps)
+        print(f"ground-truth motion at {args.fps:g} fps: residual root force (% body weight)")
+        print("  script      frames  resid_mean  resid_p95  cone_viol_%  skating_mm_s  penetr_max_mm  flights  s/frame")
+        for r in rows:
+            print(f"  {r['script']:10s} {r['frames']:6d}  {r['residual_root_force_pct_bw_mean']:10.2f}  "
+                  f"{r['residual_root_force_pct_bw_p95']:9.2f}  {r['friction_cone_violation_pct']:11.1f}  "
+                  f"{r['foot_skating_mm_s']:12.1f}  {r['ground_penetration_mm_max']:13.1f}  {r['flight_episodes']:7d}  "
+                  f"{r['s_per_frame']:.3f}")
+        return
     if not args.skip_filters:
         print("filter choice: acceleration error on 2 mm noise at 30 fps (m/s^2)")
         rows = sorted(bench_filters(), key=lambda r: r["acc_rms_all"])

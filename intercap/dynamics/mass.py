@@ -23,7 +23,12 @@ import numpy as np
 
 TISSUE_DENSITY = 1010.0  # kg/m^3, whole-body average
 
-# name: (mass %, CM % from the first endpoint, r_sagittal %, r_transverse %, r_longitudinal %)
+# de Leva (1996) Table 4, checked against the published table: per segment (mass % of body mass,
+# CM % of the segment length from the first endpoint, radii of gyration % of the length about the
+# sagittal, transverse and longitudinal axes). The rows are the table's alternatives whose endpoints
+# the body model has: head and upper trunk from cervicale (C7), the shank from the knee to the ankle
+# joint centre (not the lateral malleolus). The female masses sum to 99.99 % as published
+# (rounding); de_leva_table renormalises them to exactly 1.
 DE_LEVA_MALE = {
     "head": (6.94, 50.02, 30.3, 31.5, 26.1),  # vertex -> cervicale (C7)
     "upper_trunk": (15.96, 50.66, 50.5, 32.0, 46.5),  # cervicale -> xiphoid
@@ -33,7 +38,7 @@ DE_LEVA_MALE = {
     "forearm": (1.62, 45.74, 27.6, 26.5, 12.1),  # elbow -> wrist joint centre
     "hand": (0.61, 79.00, 62.8, 51.3, 40.1),  # wrist -> third metacarpal head
     "thigh": (14.16, 40.95, 32.9, 32.9, 14.9),  # hip -> knee joint centre
-    "shank": (4.33, 44.59, 25.5, 24.9, 10.3),  # knee joint centre -> ankle
+    "shank": (4.33, 43.95, 25.1, 24.6, 10.2),  # knee joint centre -> ankle joint centre
     "foot": (1.37, 44.15, 25.7, 24.5, 12.4),  # heel -> toe tip
 }
 DE_LEVA_FEMALE = {
@@ -45,9 +50,11 @@ DE_LEVA_FEMALE = {
     "forearm": (1.38, 45.59, 26.1, 25.7, 9.4),
     "hand": (0.56, 74.74, 53.1, 45.4, 33.5),
     "thigh": (14.78, 36.12, 36.9, 36.4, 16.2),
-    "shank": (4.81, 44.16, 27.1, 26.7, 9.3),
+    "shank": (4.81, 43.52, 26.7, 26.3, 9.2),
     "foot": (1.29, 40.14, 29.9, 27.9, 13.9),
 }
+
+UNPAIRED = ("head", "upper_trunk", "mid_trunk", "lower_trunk")  # the other rows come left and right
 
 # anny segments: (segment, table row, first endpoint, second endpoint, carrier bone). An endpoint is
 # a bone name (its head), "mid:A:B" (midpoint of two bone heads) or "vertex:NAME" (a landmark vertex).
@@ -75,9 +82,14 @@ class MassError(ValueError):
 
 
 def de_leva_table(female_fraction: float) -> dict[str, np.ndarray]:
-    """The table blended between male (0) and female (1); rows as fractions (not %)."""
+    """The table blended between male (0) and female (1); rows as fractions (not %), the mass
+    fractions of the whole body (both sides of the paired segments) summing to exactly 1."""
     w = float(np.clip(female_fraction, 0.0, 1.0))
-    return {k: ((1 - w) * np.array(DE_LEVA_MALE[k]) + w * np.array(DE_LEVA_FEMALE[k])) / 100.0 for k in DE_LEVA_MALE}
+    rows = {k: ((1 - w) * np.array(DE_LEVA_MALE[k]) + w * np.array(DE_LEVA_FEMALE[k])) / 100.0 for k in DE_LEVA_MALE}
+    total = sum(r[0] * (1 if k in UNPAIRED else 2) for k, r in rows.items())
+    for r in rows.values():
+        r[0] /= total
+    return rows
 
 
 def mesh_volume(vertices: np.ndarray, faces: np.ndarray, what: str = "mesh") -> float:

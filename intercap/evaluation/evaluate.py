@@ -47,6 +47,7 @@ from intercap.evaluation.metrics import (
     summarise,
     vertex_jitter,
 )
+from intercap.evaluation.physics_figures import physics_file, physics_metrics
 from intercap.evaluation.table import json_list, jsonable
 from intercap.geometry.surfaces import TriangleSurface, symmetric_surface_distance
 from intercap.geometry.symmetry import detect_symmetry, rotation_angle_deg, symmetric_rotation_error_deg
@@ -312,7 +313,7 @@ def _jitter_metrics(inp: _Inputs) -> None:
             m["object_jitter_gt_mps2"] = rigid_jitter(verts, inp.gt["object_R"], inp.gt["object_t"], inp.fps)
 
 
-def evaluate(out_dir, session_dir, *, symmetric_object: bool | None = None, surface_samples: int = 2000,
+def evaluate(out_dir, session_dir=None, *, symmetric_object: bool | None = None, surface_samples: int = 2000,
              seed: int = 0) -> EvalResult:
     """Compare a results folder with the session's ground truth; definitions in the module docstring.
 
@@ -321,13 +322,25 @@ def evaluate(out_dir, session_dir, *, symmetric_object: bool | None = None, surf
     group); False turns them off. surface_samples: points per mesh for
     body_surface_mm (and for the symmetry test); seed makes the sampling repeatable.
     Raises ValueError when results and ground truth cover different numbers of frames.
+    Physics figures (evaluation.physics_figures) come from OUT/physics/physics.npz ("not run"
+    without it); with no session or no ground_truth/ they are all there is.
     """
-    out_dir, session_dir = Path(out_dir), Path(session_dir)
+    out_dir = Path(out_dir)
     if not out_dir.is_dir():
         raise FileNotFoundError(f"results folder {out_dir} not found")
-    gt_dir = session_dir / "ground_truth"
-    if not gt_dir.is_dir():
-        raise FileNotFoundError(f"{gt_dir} not found: evaluation needs a session with ground truth")
+    gt_dir = Path(session_dir) / "ground_truth" if session_dir is not None else None
+    if gt_dir is None or not gt_dir.is_dir():  # real data: the physical plausibility figures only
+        if not physics_file(out_dir).is_file():
+            where = f"{gt_dir} not found" if gt_dir is not None else "no session with ground truth given"
+            raise FileNotFoundError(f"{where}: evaluation needs a session with ground truth, or "
+                                    f"{physics_file(out_dir)} for the physical plausibility figures")
+        result = EvalResult()
+        metrics, notes = physics_metrics(out_dir)
+        result.metrics["frames"] = int(len(np.load(physics_file(out_dir))["valid"]))
+        result.metrics.update(metrics)
+        result.notes += ["no ground truth: physical plausibility figures only"] + notes
+        return result
+    session_dir = Path(session_dir)
     info = _session_info(session_dir)
     res, res_files = _load_folder(out_dir)
     gt, gt_files = _load_folder(gt_dir)
@@ -359,4 +372,7 @@ def evaluate(out_dir, session_dir, *, symmetric_object: bool | None = None, surf
     if inp.has("penetration", ["body_vertices", "object_poses"], ["contact"]) and surface is not None:
         _penetration_metrics(inp)
     _jitter_metrics(inp)
+    metrics, notes = physics_metrics(out_dir, gt_dir)
+    result.metrics.update(metrics)
+    result.notes += notes
     return result

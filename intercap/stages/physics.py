@@ -15,8 +15,10 @@ composes intercap.dynamics:
 
 Writes OUT/physics/physics.npz (keys of SESSION_FORMAT.md, SI units, world frame; extra keys:
 hand_point (T, 2, 3) m where the hand wrench acts and about which hand_torque is taken,
-residual_object_torque (T, 3), foot_contact (T, 2, P) bool, foot_points (T, 2, P, 3), mu,
-body_mass_source, object_mass_source) and returns its figures for OUT/metrics.json.
+object_residual_torque (T, 3), foot_contact (T, 2, P) bool, foot_points (T, 2, P, 3), hand_contact
+(T, 2) bool, mu, body_mass_source, object_mass_source, and the per-frame plausibility inputs of
+dynamics.plausibility: cone_violation, sole_speed, ground_penetration_m, object_ground_penetration_m)
+and returns its figures for OUT/metrics.json (dynamics.plausibility.summarise of that file, plus masses).
 `analyse(out_dir, session)` is the same from Python.
 """
 from __future__ import annotations
@@ -34,6 +36,7 @@ from intercap.dynamics import contact_forces as cf
 from intercap.dynamics import kinematics as kin
 from intercap.dynamics import mass as mass_model
 from intercap.dynamics import newton_euler as ne
+from intercap.dynamics import plausibility
 from intercap.io.files import read_json, save_npz
 
 log = logging.getLogger(__name__)
@@ -337,39 +340,35 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
         if has_object else {"episodes": np.zeros((0, 2), np.int64), "acceleration": np.zeros((0, 3)),
                             "gravity_angle_deg": np.zeros(0)}
 
-    stage_dir = out_dir / "physics"
-    save_npz(stage_dir / "physics.npz", frame_ids=frame_ids, gravity=gravity, body_mass_kg=np.float64(body_mass),
-             object_mass_kg=np.float64(object_mass), hand_force=hand_force, hand_torque=hand_torque,
-             hand_point=track.hands, foot_force=foot_force, foot_cop=cop, object_ground_force=object_ground,
-             joint_torque=joint_torque, joint_names=np.array(model.joint_names),
-             residual_force=sol.body_residual[:, :3], residual_torque=sol.body_residual[:, 3:],
-             object_residual_force=sol.object_residual[:, :3], object_residual_torque=sol.object_residual[:, 3:],
-             valid=valid, flight_episodes=flight["episodes"], flight_acceleration=flight["acceleration"],
-             flight_gravity_angle_deg=flight["gravity_angle_deg"], foot_contact=foot_active, foot_points=soles,
-             mu=np.float64(pc.mu), body_mass_source=np.array(body_source), object_mass_source=np.array(object_source))
-
     arm = track.hands - root[:, None]  # the feet carry the body's needs plus what the hands push on the object
     feet_need = body_wrench.copy()
     feet_need[:, :3] += hand_f.sum(1)
     feet_need[:, 3:] += (np.cross(arm, hand_f) + hand_t).sum(1)
-    figures = plausibility(sol, valid, body_mass, gravity, soles, foot_active, root, feet_need, up, pc, fps,
-                           track.lowest, point, obj_points, obj_valid)
+    per_frame = plausibility_arrays(feet_need, root, soles, foot_active, up, pc, fps, track.lowest, point,
+                                    obj_points, obj_valid)
+    arrays = dict(frame_ids=frame_ids, gravity=gravity, body_mass_kg=np.float64(body_mass),
+                  object_mass_kg=np.float64(object_mass), hand_force=hand_force, hand_torque=hand_torque,
+                  hand_point=track.hands, foot_force=foot_force, foot_cop=cop, object_ground_force=object_ground,
+                  joint_torque=joint_torque, joint_names=np.array(model.joint_names),
+                  residual_force=sol.body_residual[:, :3], residual_torque=sol.body_residual[:, 3:],
+                  object_residual_force=sol.object_residual[:, :3], object_residual_torque=sol.object_residual[:, 3:],
+                  valid=valid, flight_episodes=flight["episodes"], flight_acceleration=flight["acceleration"],
+                  flight_gravity_angle_deg=flight["gravity_angle_deg"], foot_contact=foot_active, foot_points=soles,
+                  hand_contact=np.zeros((T, 2), bool) if hand_active is None else hand_active,
+                  mu=np.float64(pc.mu), body_mass_source=np.array(body_source),
+                  object_mass_source=np.array(object_source), **per_frame)
+    save_npz(out_dir / "physics" / "physics.npz", **arrays)
+    figures = plausibility.summarise(arrays)
     figures.update({
         "body_mass_kg": body_mass, "body_mass_source": body_source,
         "object_mass_kg": None if not np.isfinite(object_mass) else object_mass, "object_mass_source": object_source,
         "object_forces": "solved" if object_known else f"skipped: object mass {object_source}" if has_object else "no object",
         "ground_source": ground_source, "frames_valid": int(valid.sum()),
-        "flight_episodes": int(len(flight["episodes"])),
     })
     if valid.any():
         figures["ground_reaction_mean_n"] = float(np.linalg.norm(foot_force[valid].sum(1), axis=-1).mean())
         if object_known:
             figures["hand_force_sum_mean_n"] = float(np.linalg.norm(np.nansum(hand_force[valid], 1), axis=-1).mean())
-    if len(flight["episodes"]):
-        err = np.linalg.norm(flight["acceleration"] - gravity, axis=1)
-        figures["flight_accel_error_mean"] = float(np.nanmean(err))
-        figures["flight_g_norm_mean"] = float(np.nanmean(np.linalg.norm(flight["acceleration"], axis=1)))
-        figures["flight_gravity_angle_deg_mean"] = float(np.nanmean(flight["gravity_angle_deg"]))
     figures["physics_seconds_per_frame"] = (time.perf_counter() - start) / max(T, 1)
     return figures
 
@@ -410,39 +409,39 @@ def flight_analysis(centres, touching, up, fps, min_frames) -> dict:
     return {"episodes": episodes, "acceleration": fit["acceleration"], "gravity_angle_deg": fit["gravity_angle_deg"]}
 
 
-def plausibility(sol, valid, body_mass, gravity, soles, foot_active, root, body_wrench, up, pc, fps, lowest, point,
-                 obj_points, obj_valid) -> dict:
-    """Physical plausibility figures (useful without ground truth)."""
-    weight = body_mass * np.linalg.norm(gravity)
-    out = {}
-    if valid.any():
-        res = np.linalg.norm(sol.body_residual[valid, :3], axis=1) / weight * 100
-        out["residual_root_force_pct_bw_mean"] = float(res.mean())
-        out["residual_root_force_pct_bw_p95"] = float(np.percentile(res, 95))
-        out["residual_root_torque_nm_mean"] = float(np.linalg.norm(sol.body_residual[valid, 3:], axis=1).mean())
-        obj = np.linalg.norm(sol.object_residual[valid, :3], axis=1)
-        if np.isfinite(obj).any():
-            out["object_residual_force_n_mean"] = float(np.nanmean(obj))
-        # friction-cone violations of the unconstrained solve (hand reactions removed from the body's needs)
-        free = cf.unconstrained_feet(body_wrench, root, soles, foot_active)
-        total = free.sum(2)  # (T, 2, 3) per foot
-        in_contact = foot_active.any(2) & valid[:, None]
-        bad = cf.cone_violation(total, up, pc.mu) & in_contact
-        out["friction_cone_violation_pct"] = float(100 * bad.sum() / max(in_contact.sum(), 1))
+def plausibility_arrays(feet_need, root, soles, foot_active, up, pc, fps, lowest, point, obj_points,
+                        obj_valid) -> dict:
+    """Per-frame inputs of the plausibility figures (dynamics.plausibility): friction-cone violations
+    of the unconstrained solve of the feet's load `feet_need` (T, 6) about root, sole speeds,
+    body and object depth below the floor."""
+    free = cf.unconstrained_feet(feet_need, root, soles, foot_active)  # (T, 2, P, 3)
+    violation = cf.cone_violation(free.sum(2), up, pc.mu) & np.isfinite(free).all((2, 3))  # (T, 2)
     _, vel, _ = kin.derivatives(soles, fps, method=pc.filter, window_s=pc.filter_window_s, order=pc.filter_order,
                                 cutoff_hz=pc.cutoff_hz)
     tangential = vel - (vel @ up)[..., None] * up
-    speed = np.linalg.norm(tangential, axis=-1)[foot_active & valid[:, None, None]]
-    out["foot_skating_mm_s"] = float(speed.mean() * 1000) if speed.size else 0.0
-    depth = np.clip(-lowest[valid], 0, None) * 1000
-    out["ground_penetration_mm_mean"] = float(depth.mean()) if depth.size else 0.0
-    out["ground_penetration_mm_max"] = float(depth.max()) if depth.size else 0.0
+    obj_depth = np.full(len(soles), np.nan)
     if obj_points is not None and obj_valid.any():
-        od = np.clip(-((obj_points[obj_valid] - point) @ up).min(1), 0, None) * 1000
-        out["object_ground_penetration_mm_max"] = float(od.max())
-    return out
+        obj_depth[obj_valid] = np.clip(-((obj_points[obj_valid] - point) @ up).min(1), 0, None)
+    return {"cone_violation": violation, "sole_speed": np.linalg.norm(tangential, axis=-1),
+            "ground_penetration_m": np.clip(-np.asarray(lowest, np.float64), 0, None),
+            "object_ground_penetration_m": obj_depth}
+
+
+def nothing_to_analyse(out_dir: Path) -> str | None:
+    """Why there is nothing to analyse (the body was fitted in no frame: no person seen), or None."""
+    path = Path(out_dir) / "body_params.npz"
+    if not path.exists():
+        return None  # analyse says which stage to run
+    with np.load(path) as z:
+        valid = z["valid"].astype(bool) if "valid" in z else np.isfinite(z["transl"]).all(1)
+    return None if valid.any() else f"no frame has a body fit in {path} (no person detected or fitted)"
 
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
-    """The `physics` stage: OUT/physics/physics.npz and the figures for metrics.json."""
+    """The `physics` stage: OUT/physics/physics.npz and the figures for metrics.json; skipped,
+    with the reason in the figures, when no frame has a body to analyse."""
+    reason = nothing_to_analyse(out_dir)
+    if reason is not None:
+        log.warning("physics: skipped: %s", reason)
+        return {"skipped": reason}
     return analyse(out_dir, session, cfg, progress)

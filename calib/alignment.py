@@ -2,9 +2,11 @@
 
 Each camera's depth, back-projected with its calibration, gives a world point
 cloud. Where two neighbouring views see the same surfaces, a good calibration
-makes the clouds coincide. Point-to-plane ICP from one view onto the other,
-started at identity, measures the rigid correction that would make them agree:
-near zero for a good calibration, about the drift for a camera that has moved.
+makes the clouds coincide. Point-to-plane ICP from one view onto the other
+(frame by frame: a moving person matches only itself), started at identity,
+measures the rigid correction that would make them agree, but only in the
+directions the overlap constrains, with its uncertainty: a pair is flagged
+only when that correction is both large and many times its standard deviation.
 """
 from __future__ import annotations
 
@@ -41,6 +43,10 @@ class PairAgreement:
     "translation along (0.00, 1.00, 0.00)", "rotation about (...)"), left out
     of the correction;
     fitness: fraction of a's points with a correspondence after ICP;
+    translation_sigma_mm / rotation_sigma_deg: standard deviations of the observable
+    correction along itself (cluster-robust, see pair_agreement); observable_dof: how
+    many of the six directions the overlap constrains; significance: Mahalanobis size
+    of the correction (sigmas); flagged: clear evidence of drift;
     correction: (4, 4) world-frame transform (observable part) moving a's points
     onto b's (apply it to a's T_world_from_cam to re-align camera a to b).
     Distances are NaN when the views do not overlap.
@@ -60,6 +66,11 @@ class PairAgreement:
     full_rotation_deg: float = float("nan")
     full_translation_mm: float = float("nan")
     unobservable: list = field(default_factory=list)
+    translation_sigma_mm: float = float("nan")
+    rotation_sigma_deg: float = float("nan")
+    observable_dof: int = 0
+    significance: float = float("nan")
+    flagged: bool = False
 
 
 def neighbour_pairs(camera_centers) -> list[tuple[int, int]]:
@@ -115,21 +126,6 @@ def rotation_angle_deg(R: np.ndarray) -> float:
     return math.degrees(math.acos(float(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))))
 
 
-def _view_cloud(points: np.ndarray, voxel_size: float, name: str) -> o3d.geometry.PointCloud:
-    pts = np.asarray(points, dtype=np.float64)
-    if pts.ndim != 2 or pts.shape[1] != 3:
-        raise ValueError(f"check_calibration: points of view {name!r} must be (N, 3), got {pts.shape}")
-    pts = pts[np.isfinite(pts).all(axis=1)]
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    if voxel_size > 0 and len(pts):
-        cloud = cloud.voxel_down_sample(float(voxel_size))  # averages the points in a voxel: less noise
-    if len(cloud.points):
-        # a wide neighbourhood: depth noise of ~1 cm tilts normals estimated on a few cm
-        radius = max(4 * voxel_size, 0.06)
-        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius, max_nn=60))
-    return cloud
-
-
 def twist_transform(x: np.ndarray, centre: np.ndarray, radius: float) -> np.ndarray:
     """(4, 4) rigid transform of a scaled twist x (6,) = [radius * rotation vector,
     translation of `centre`], the rotation being about `centre`."""
@@ -183,44 +179,110 @@ def describe_directions(V: np.ndarray) -> list[str]:
     return out
 
 
-def robust_point_to_plane_icp(
-    src: np.ndarray,
-    tgt_tree: cKDTree,
-    tgt: np.ndarray,
-    tgt_normals: np.ndarray,
-    max_distance: float,
-    centre: np.ndarray,
-    radius: float,
-    basis: np.ndarray | None,
-    iterations: int = 30,
-) -> np.ndarray:
-    """(4, 4) point-to-plane ICP of src (N, 3) onto tgt (M, 3), from identity.
 
-    Huber weights (scale from the residuals' MAD) tame the noise and outliers;
-    each Gauss-Newton step is solved only within `basis` (6, k) of scaled-twist
-    directions (all six when None), so poorly constrained directions never move."""
-    T = np.eye(4)
-    for _ in range(iterations):
-        q = src @ T[:3, :3].T + T[:3, 3]
-        dist, idx = tgt_tree.query(q, k=1, distance_upper_bound=max_distance)
-        ok = np.isfinite(dist)
-        if ok.sum() < 6:
-            break
-        n = tgt_normals[idx[ok]]
-        residual = ((q[ok] - tgt[idx[ok]]) * n).sum(axis=1)
-        scale = 1.4826 * np.median(np.abs(residual - np.median(residual)))
-        k = 1.345 * max(scale, 1e-4)
-        weights = np.minimum(1.0, k / np.maximum(np.abs(residual), 1e-12))
-        H, g = point_to_plane_system(q[ok], n, residual, weights, centre, radius)
-        B = np.eye(6) if basis is None else basis
-        if B.shape[1] == 0:
-            break
-        Hb = B.T @ H @ B
-        x = -B @ np.linalg.lstsq(Hb, B.T @ g, rcond=None)[0]
-        T = twist_transform(x, centre, radius) @ T
-        if np.linalg.norm(x) < 1e-6:
-            break
-    return T
+
+def voxel_average(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """(N, 3) finite points -> one averaged point per occupied voxel (less noise, even density)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if voxel_size <= 0 or len(pts) == 0:
+        return pts
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    return np.asarray(cloud.voxel_down_sample(float(voxel_size)).points)
+
+
+def local_planes(points: np.ndarray, radius: float, neighbours: int = 16, max_flatness: float = 0.08):
+    """Tangent planes of a cloud (N, 3): the points, unit normals (N, 3) from the PCA
+    of their `neighbours` nearest points within `radius`, and (N,) ok where at least 6
+    neighbours were found and the patch is flat (smallest / total variance at most
+    max_flatness: edges, corners and thin parts give no trustworthy normal)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) < 6:
+        return pts, np.zeros_like(pts), np.zeros(len(pts), bool)
+    k = min(neighbours, len(pts))
+    dist, idx = cKDTree(pts).query(pts, k=k, distance_upper_bound=radius)
+    found = np.isfinite(dist)  # (N, k)
+    idx = np.where(found, idx, np.arange(len(pts))[:, None])
+    nb = pts[idx]  # (N, k, 3)
+    w = found[..., None].astype(np.float64)
+    count = np.maximum(w.sum(axis=1), 1.0)  # (N, 1)
+    mean = (nb * w).sum(axis=1) / count
+    d = (nb - mean[:, None]) * w
+    cov = np.einsum("nki,nkj->nij", d, d) / count[..., None]
+    ev, vec = np.linalg.eigh(cov)  # ascending
+    normals = vec[..., 0]
+    flat = ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-18)
+    ok = (found.sum(axis=1) >= 6) & (flat <= max_flatness)
+    return pts, normals, ok
+
+
+@dataclass
+class _ViewFrame:
+    """One view's points of one frame, with its tangent planes (as the target of a pair)."""
+
+    points: np.ndarray  # (N, 3) voxel-averaged
+    planes: np.ndarray  # (M, 3) points with a trustworthy normal
+    normals: np.ndarray  # (M, 3)
+    tree: cKDTree | None
+    point_sigma: np.ndarray  # (N,) expected depth noise of the points (metres)
+    plane_sigma: np.ndarray  # (M,)
+
+
+def depth_noise(distance: np.ndarray) -> np.ndarray:
+    """Expected depth noise (metres) at `distance` from the camera: a time-of-flight sensor's
+    1.5 mm + 1.5 mm/m^2 * d^2 (Azure Kinect-like). Only its shape matters: it weighs near
+    points above far ones, whose noise is a thick slab that nearest-neighbour matching biases."""
+    return 0.0015 + 0.0015 * np.asarray(distance) ** 2
+
+
+def _view_frame(points: np.ndarray, voxel_size: float, plane_radius: float, name: str, centre) -> _ViewFrame:
+    pts = np.asarray(points, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"check_calibration: points of view {name!r} must be (N, 3), got {pts.shape}")
+    pts = voxel_average(pts, voxel_size)
+    q, n, ok = local_planes(pts, plane_radius)
+    sigma = depth_noise(np.linalg.norm(pts - np.asarray(centre, float), axis=1))
+    return _ViewFrame(pts, q[ok], n[ok], cKDTree(q[ok]) if ok.any() else None, sigma, sigma[ok])
+
+
+def _correspondences(src: list[_ViewFrame], tgt: list[_ViewFrame], T: np.ndarray, max_distance: float):
+    """Point-to-plane correspondences of the moved source points with the target planes, frame by
+    frame (a moving person only matches itself in the same instant): moved points (K, 3),
+    normals (K, 3), signed residuals (K,), frame index (K,), expected residual sigma (K,)."""
+    qs, ns, rs, fs, ss = [], [], [], [], []
+    for f, (s, t) in enumerate(zip(src, tgt)):
+        if t.tree is None or len(s.points) == 0:
+            continue
+        q = s.points @ T[:3, :3].T + T[:3, 3]
+        d, i = t.tree.query(q, k=1, distance_upper_bound=max_distance)
+        hit = np.isfinite(d)
+        n = t.normals[i[hit]]
+        r = ((q[hit] - t.planes[i[hit]]) * n).sum(axis=1)
+        qs.append(q[hit]), ns.append(n), rs.append(r), fs.append(np.full(len(r), f))
+        ss.append(np.hypot(s.point_sigma[hit], t.plane_sigma[i[hit]]))
+    if not qs:
+        z = np.zeros((0, 3))
+        return z, z, np.zeros(0), np.zeros(0, int), np.ones(0)
+    return np.concatenate(qs), np.concatenate(ns), np.concatenate(rs), np.concatenate(fs), np.concatenate(ss)
+
+
+def noise_weights(residual: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """(N,) IRLS weights: Huber on the residuals in units of their expected noise, times 1/sigma^2."""
+    return huber_weights(residual / sigma) / sigma**2
+
+
+def huber_weights(residual: np.ndarray) -> np.ndarray:
+    """(N,) Huber IRLS weights of residuals (N,), scale from their MAD."""
+    scale = 1.4826 * np.median(np.abs(residual - np.median(residual)))
+    k = 1.345 * max(scale, 1e-4)
+    return np.minimum(1.0, k / np.maximum(np.abs(residual), 1e-12))
+
+
+def block_labels(points: np.ndarray, frames: np.ndarray, block_size: float) -> np.ndarray:
+    """(N,) label of the (frame, cubic cell of side block_size) holding each point (N, 3)."""
+    cells = np.column_stack([frames, np.floor(points / block_size).astype(np.int64)])
+    _, labels = np.unique(cells, axis=0, return_inverse=True)
+    return labels.reshape(-1)
 
 
 def correction_size(T: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
@@ -228,122 +290,213 @@ def correction_size(T: np.ndarray, centre: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(T[:3, :3] @ centre + T[:3, 3] - centre) * 1000), rotation_angle_deg(T[:3, :3])
 
 
+def _sigma_along(cov3: np.ndarray, v: np.ndarray) -> float:
+    """Standard deviation of a (3, 3) covariance along v (3,); the largest one when v is ~0."""
+    norm = np.linalg.norm(v)
+    if norm < 1e-12:
+        return float(np.sqrt(max(np.linalg.eigvalsh(cov3).max(), 0.0)))
+    u = v / norm
+    return float(np.sqrt(max(u @ cov3 @ u, 0.0)))
+
+
 def pair_agreement(
-    source: o3d.geometry.PointCloud,
-    target: o3d.geometry.PointCloud,
+    source: list[_ViewFrame],
+    target: list[_ViewFrame],
     cam_a: str,
     cam_b: str,
     max_distance: float,
     min_overlap: int = 50,
-    min_constraint: float = 0.1,
+    min_constraint: float = 0.02,
+    block_size: float = 0.25,
+    k_sigma: float = 4.0,
+    min_mm: float = 8.0,
+    min_deg: float = 0.25,
+    iterations: int = 15,
+    bias_fraction: float = 0.0,
 ) -> PairAgreement:
-    """Agreement of one view's cloud (source, a) with its neighbour's (target, b).
+    """Agreement of view a's points (one (N, 3) array per frame) with view b's planes (same frames).
 
-    The correction is solved only in the directions the overlap constrains
-    (see observable_basis); min_constraint=0 gives plain robust 6-dof ICP."""
+    Robust point-to-plane ICP from identity, each frame matched with its own frame. The
+    correction is solved only in the directions the overlap constrains (eigenvalues of the
+    normal matrix at least min_constraint x the largest; a floor alone leaves its two in-plane
+    translations and the rotation about its normal free), and its uncertainty is the
+    cluster-robust ("sandwich") covariance over blocks of block_size metres per frame, since
+    neighbouring residuals share sampling and sensor errors. Flagged only on clear evidence:
+    correction above k_sigma of its standard deviation AND above min_mm (or both for min_deg)."""
     nan = float("nan")
-    if len(source.points) == 0 or len(target.points) == 0:
-        return PairAgreement(cam_a, cam_b, 0, nan, nan, nan, nan, 0.0)
-    src_pts = np.asarray(source.points)  # (N_a, 3)
-    tgt_pts = np.asarray(target.points)  # (N_b, 3)
-    tgt_normals = np.asarray(target.normals)  # (N_b, 3)
-    tree = cKDTree(tgt_pts)
-    nn, idx = tree.query(src_pts, k=1, distance_upper_bound=max_distance)
-    overlap = np.isfinite(nn)  # a neighbour within max_distance
-    n_overlap = int(overlap.sum())
+    empty = PairAgreement(cam_a, cam_b, 0, nan, nan, nan, nan, 0.0)
+    q, n, r, fr, sg = _correspondences(source, target, np.eye(4), max_distance)
+    n_source = sum(len(s.points) for s in source)
+    n_overlap = int(len(r))
     if n_overlap < min_overlap:
-        return PairAgreement(cam_a, cam_b, n_overlap, nan, nan, nan, nan, 0.0)
-    over = src_pts[overlap]  # (K, 3)
-    normals = tgt_normals[idx[overlap]]  # (K, 3)
-    off_plane = ((over - tgt_pts[idx[overlap]]) * normals).sum(axis=1)
-    centre = over.mean(axis=0)
-    radius = float(np.sqrt(((over - centre) ** 2).sum(axis=1).mean()))
-    H, _ = point_to_plane_system(over, normals, off_plane, np.ones(n_overlap), centre, radius)
-    keep, drop = observable_basis(H, min_constraint)
-    T = robust_point_to_plane_icp(src_pts, tree, tgt_pts, tgt_normals, max_distance, centre, radius, keep)
-    T_full = robust_point_to_plane_icp(src_pts, tree, tgt_pts, tgt_normals, max_distance, centre, radius, None)
-    # after ICP: RMS point-to-plane residual of the correspondences
-    moved_pts = src_pts @ T[:3, :3].T + T[:3, 3]
-    nn_after, idx_after = tree.query(moved_pts, k=1, distance_upper_bound=max_distance)
-    used = np.isfinite(nn_after)
-    residual = ((moved_pts[used] - tgt_pts[idx_after[used]]) * tgt_normals[idx_after[used]]).sum(1)
+        empty.overlap_points = n_overlap
+        return empty
+    centre = q.mean(axis=0)
+    radius = max(float(np.sqrt(((q - centre) ** 2).sum(axis=1).mean())), 1e-3)
+    H0, _ = point_to_plane_system(q, n, r, noise_weights(r, sg), centre, radius)
+    keep, drop = observable_basis(H0, min_constraint)
+    median_before = float(np.median(np.abs(r)) * 1000)
+    # a floor for what the sandwich cannot see: on noisy depth the first step itself is biased by
+    # a fraction of the residuals' spread (nearest neighbours within thick slabs of noise)
+    floor = bias_fraction * 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    refine_mm, refine_deg = max(min_mm, k_sigma * floor * 1000), max(min_deg, math.degrees(k_sigma * floor / radius))
+
+    T = np.eye(4)
+    # One Gauss-Newton step from the calibrated pose measures a drift within max_distance directly.
+    # Re-associating nearest neighbours on noisy slabs (depth noise of ~1-3 cm at 3-4 m) walks by
+    # several mm on an exact calibration, so further ICP iterations only size a drift whose first
+    # step is already clear evidence (above min_mm / min_deg and k_sigma x the noise floor).
+    for it in range(iterations):
+        w = noise_weights(r, sg)
+        H, g = point_to_plane_system(q, n, r, w, centre, radius)
+        if keep.shape[1] == 0:
+            break
+        x = -keep @ np.linalg.solve(keep.T @ H @ keep, keep.T @ g)
+        step = np.linalg.norm(x)
+        if step > 0.3 * max_distance:  # a trust region: never jump past the correspondences that hold it
+            x *= 0.3 * max_distance / step
+        T = twist_transform(x, centre, radius) @ T
+        q, n, r, fr, sg = _correspondences(source, target, T, max_distance)
+        if len(r) < min_overlap:
+            return PairAgreement(cam_a, cam_b, n_overlap, median_before, nan, nan, nan, 0.0)
+        first_mm, first_deg = correction_size(T, centre)
+        if step < 1e-5 or (it == 0 and first_mm <= refine_mm and first_deg <= refine_deg):
+            break
+
+    # uncertainty of the observable correction: cluster-robust sandwich over (frame, block)
+    w = noise_weights(r, sg)
+    J = np.hstack([np.cross(q - centre, n) / radius, n])  # (K, 6)
+    A = keep.T @ ((J * w[:, None]).T @ J) @ keep  # (k, k)
+    labels = block_labels(q, fr, block_size)
+    blocks = int(labels.max()) + 1
+    grad = np.zeros((blocks, 6))
+    np.add.at(grad, labels, J * (w * r)[:, None])
+    grad = grad @ keep  # (B, k)
+    meat = grad.T @ grad * blocks / max(blocks - 1, 1)
+    A_inv = np.linalg.inv(A) if keep.shape[1] else np.zeros((0, 0))
+    cov6 = keep @ A_inv @ meat @ A_inv @ keep.T  # (6, 6) in scaled-twist units (metres)
+    x6 = keep @ keep.T @ scaled_twist(T, centre, radius)
+    significance = float(np.sqrt(max(x6 @ np.linalg.pinv(cov6, hermitian=True) @ x6, 0.0))) if keep.shape[1] else 0.0
+    # a full 6-dof Gauss-Newton step from here: diagnostic only (it slides along free directions)
+    H, g = point_to_plane_system(q, n, r, w, centre, radius)
+    x_full = scaled_twist(T, centre, radius) - np.linalg.lstsq(H, g, rcond=None)[0]
     mm, deg = correction_size(T, centre)
-    full_mm, full_deg = correction_size(T_full, centre)
+    sigma_mm = math.hypot(_sigma_along(cov6[3:, 3:], x6[3:]), floor) * 1000
+    sigma_deg = math.degrees(math.hypot(_sigma_along(cov6[:3, :3], x6[:3]), floor) / radius)
+    flagged = bool((mm > min_mm and mm > k_sigma * sigma_mm) or (deg > min_deg and deg > k_sigma * sigma_deg))
     return PairAgreement(
         cam_a=cam_a,
         cam_b=cam_b,
         overlap_points=n_overlap,
-        median_distance_mm=float(np.median(np.abs(off_plane)) * 1000),
-        icp_rmse_mm=float(np.sqrt(np.mean(residual**2)) * 1000) if used.any() else nan,
+        median_distance_mm=median_before,
+        icp_rmse_mm=float(np.sqrt(np.mean(r**2)) * 1000),
         correction_rotation_deg=deg,
         correction_translation_mm=mm,
-        fitness=float(used.mean()),
+        fitness=float(len(r) / max(n_source, 1)),
         correction=T.copy(),
         observable_rotation_deg=deg,
         observable_translation_mm=mm,
-        full_rotation_deg=full_deg,
-        full_translation_mm=full_mm,
+        full_rotation_deg=float(np.degrees(np.linalg.norm(x_full[:3]) / radius)),
+        full_translation_mm=float(np.linalg.norm(x_full[3:]) * 1000),
         unobservable=describe_directions(drop),
+        translation_sigma_mm=sigma_mm,
+        rotation_sigma_deg=sigma_deg,
+        observable_dof=int(keep.shape[1]),
+        significance=significance,
+        flagged=flagged,
     )
 
 
 def check_calibration(
-    points_per_view: list[np.ndarray],
+    points_per_view: list,
     names: list[str],
     camera_centers,
     max_distance: float = 0.05,
     voxel_size: float = 0.02,
     pairs: list[tuple[int, int]] | None = None,
-    min_constraint: float = 0.1,
+    min_constraint: float = 0.02,
+    block_size: float = 0.25,
+    k_sigma: float = 4.0,
+    min_mm: float = 8.0,
+    min_deg: float = 0.25,
+    plane_radius: float = 0.0,
+    iterations: int = 15,
 ) -> list[PairAgreement]:
-    """ICP agreement of each neighbouring pair of views' world clouds (N_c, 3).
+    """Agreement of each neighbouring pair of views (see pair_agreement).
 
-    Pairs come from `neighbour_pairs(camera_centers)` unless given. For each
-    pair (a, b), a's cloud is registered onto b's (robust point-to-plane ICP in
-    world coordinates, from identity, correspondences up to max_distance metres),
-    solving only the directions the overlap constrains (see pair_agreement).
-    For a static scene, pass each camera's points of several frames together:
-    more points beat the depth noise.
-    """
+    points_per_view: per view, its world points (N, 3), or a list of such arrays, one per
+    synchronised frame (all views the same frames): frames are matched only with themselves,
+    so a moving person and object add evidence in every direction they constrain.
+    Pairs come from `neighbour_pairs(camera_centers)` unless given."""
     if len(points_per_view) != len(names):
         raise ValueError(f"check_calibration: {len(points_per_view)} point clouds but {len(names)} names")
+    per_frame = [[p] if isinstance(p, np.ndarray) else list(p) for p in points_per_view]
+    if len({len(p) for p in per_frame}) > 1:
+        raise ValueError(f"check_calibration: views have different frame counts {[len(p) for p in per_frame]}")
     if pairs is None:
         pairs = neighbour_pairs(camera_centers)
-    clouds = [_view_cloud(p, voxel_size, n) for p, n in zip(points_per_view, names)]
-    return [pair_agreement(clouds[a], clouds[b], names[a], names[b], max_distance, min_constraint=min_constraint)
+    plane_radius = plane_radius if plane_radius > 0 else max(5 * voxel_size, 0.10)
+    centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
+    frames = [[_view_frame(p, voxel_size, plane_radius, name, centre) for p in view]
+              for view, name, centre in zip(per_frame, names, centers)]
+    return [pair_agreement(frames[a], frames[b], names[a], names[b], max_distance,
+                           min_constraint=min_constraint, block_size=block_size, k_sigma=k_sigma,
+                           min_mm=min_mm, min_deg=min_deg, iterations=iterations)
             for a, b in pairs]
 
 
-def format_agreement(results: list[PairAgreement], warn_mm: float = 10.0, warn_deg: float = 1.0) -> str:
-    """A table a person reads: one row per pair, flagged when the views disagree
-    by more than warn_mm (median distance or correction) or warn_deg."""
+def suspect_cameras(results: list[PairAgreement]) -> list[str]:
+    """Cameras that explain the flagged pairs: greedily the camera in the most flagged pairs
+    (ties named together, "a or b", when nothing tells them apart), until every flagged pair
+    is explained. A drifted camera of a ring flags both its pairs and is named alone."""
+    flagged = [(r.cam_a, r.cam_b) for r in results if r.flagged]
+    named = []
+    while flagged:
+        counts: dict[str, int] = {}
+        for pair in flagged:
+            for cam in pair:
+                counts[cam] = counts.get(cam, 0) + 1
+        best = max(counts.values())
+        top = sorted(c for c, k in counts.items() if k == best)
+        if best == 1 and len(top) > 1:  # lone pairs: either camera may have moved
+            a, b = flagged[0]
+            named.append(f"{a} or {b}")
+            flagged = flagged[1:]
+            continue
+        named.append(" or ".join(top))
+        flagged = [p for p in flagged if not set(p) & set(top)]
+    return named
+
+
+def format_agreement(results: list[PairAgreement], warn_mm: float = 8.0, warn_deg: float = 0.25,
+                     k_sigma: float = 4.0) -> str:
+    """A table a person reads: one row per pair, its observable correction with its standard
+    deviation; CHECK CALIBRATION only on clear evidence (pair_agreement's flag)."""
     header = (
-        f"{'pair':<24} {'overlap':>8} {'median mm':>10} {'icp rmse mm':>12} "
-        f"{'corr deg':>9} {'corr mm':>8} {'fitness':>8}  status"
+        f"{'pair':<24} {'overlap':>8} {'median mm':>10} {'rmse mm':>8} "
+        f"{'corr mm':>14} {'corr deg':>14} {'dof':>4}  status"
     )
     lines = [header, "-" * len(header)]
     n_flagged = 0
     for r in results:
         if not np.isfinite(r.median_distance_mm):
             status = "NO OVERLAP"
-            n_flagged += 1
-        elif (
-            r.median_distance_mm > warn_mm
-            or r.correction_translation_mm > warn_mm
-            or r.correction_rotation_deg > warn_deg
-        ):
+        elif r.flagged:
             status = "CHECK CALIBRATION"
             n_flagged += 1
         else:
             status = "ok"
         pair = f"{r.cam_a} -> {r.cam_b}"
+        mm = f"{r.correction_translation_mm:.1f}+-{r.translation_sigma_mm:.1f}"
+        deg = f"{r.correction_rotation_deg:.2f}+-{r.rotation_sigma_deg:.2f}"
         lines.append(
-            f"{pair:<24} {r.overlap_points:>8d} {r.median_distance_mm:>10.1f} {r.icp_rmse_mm:>12.1f} "
-            f"{r.correction_rotation_deg:>9.2f} {r.correction_translation_mm:>8.1f} {r.fitness:>8.2f}  {status}"
+            f"{pair:<24} {r.overlap_points:>8d} {r.median_distance_mm:>10.1f} {r.icp_rmse_mm:>8.1f} "
+            f"{mm:>14} {deg:>14} {r.observable_dof:>4d}  {status}"
         )
-    lines.append(
-        f"{n_flagged} of {len(results)} pairs flagged (warn above {warn_mm:g} mm or {warn_deg:g} deg)"
-        if n_flagged
-        else f"all {len(results)} pairs agree within {warn_mm:g} mm and {warn_deg:g} deg"
-    )
+    rule = f"above {warn_mm:g} mm or {warn_deg:g} deg and {k_sigma:g} sigma"
+    if n_flagged:
+        lines.append(f"{n_flagged} of {len(results)} pairs flagged ({rule}); suspect: "
+                     + ", ".join(suspect_cameras(results)))
+    else:
+        lines.append(f"no pair flagged ({rule}) over {len(results)} pairs")
     return "\n".join(lines)

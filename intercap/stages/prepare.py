@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from intercap.calib.alignment import check_calibration, format_agreement
+from intercap.calib.alignment import check_calibration, format_agreement, suspect_cameras
 from intercap.config import Config
 from intercap.geometry.cameras import Cameras, depth_to_point_grid, pixel_rays
 from intercap.geometry.ground import GroundPlane, fit_ground_plane, up_hint_from_cameras
@@ -105,7 +105,8 @@ def estimate_ground(session, clouds: ViewClouds, cfg, progress: bool) -> tuple[G
 
 
 AGREEMENT_FIELDS = ("cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
-                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg")
+                    "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg",
+                    "translation_sigma_mm", "rotation_sigma_deg", "observable_dof", "significance", "flagged")
 
 
 def agreement_rows(results: list, frames: int) -> list[dict]:
@@ -135,8 +136,8 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     names = [c.name for c in session.cameras]
     centers = cameras.centers.numpy()
     checked = spread_frames(session.frame_ids, pcfg.calib_frames)
-    # Per camera, its clouds over the checked frames: the cameras are synchronised, so each
-    # frame's person is at the same place in every view, and more points beat the depth noise.
+    # Per camera, its cloud of each checked frame: frames are matched only with themselves (the
+    # person moves), and the person and object in several poses constrain what the floor leaves free.
     fused = [[] for _ in names]
     used_frames = 0
     for frame_id in tqdm(checked, desc="prepare: calibration check", disable=not progress):
@@ -149,25 +150,30 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
             )
         if sum(len(v["points"]) > 0 for v in views) < 2:
             continue
+        if any(len(v["points"]) == 0 for v in views):  # a dropped view: keep the frame, without its points
+            views = [v if len(v["points"]) else {"points": np.zeros((0, 3))} for v in views]
         used_frames += 1
         for c, v in enumerate(views):
             fused[c].append(v["points"])
     results = []
     if used_frames:
-        results = check_calibration([np.concatenate(f) for f in fused], names, centers,
-                                    max_distance=pcfg.icp_max_distance_m,
-                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02))
+        results = check_calibration(fused, names, centers, max_distance=pcfg.icp_max_distance_m,
+                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02), k_sigma=pcfg.calib_k_sigma,
+                                    min_mm=pcfg.calib_warn_mm, min_deg=pcfg.calib_warn_deg)
     pairs = agreement_rows(results, used_frames)
-    flagged = [p for p in pairs if p["correction_translation_mm"] > pcfg.calib_warn_mm
-               or p["correction_rotation_deg"] > pcfg.calib_warn_deg]
+    flagged = [p for p in pairs if p["flagged"]]
+    suspects = suspect_cameras(results)
+    warn = {"warn_mm": pcfg.calib_warn_mm, "warn_deg": pcfg.calib_warn_deg, "k_sigma": pcfg.calib_k_sigma}
     write_json(stage_dir / "calibration_check.json", {"frames": [int(f) for f in checked], "pairs": pairs,
-                                                      "warn_mm": pcfg.calib_warn_mm, "flagged": flagged})
+                                                      **warn, "flagged": flagged, "suspect_cameras": suspects})
     if results:
-        log.info("calibration check (clouds fused over %d frames)\n%s", used_frames,
-                 format_agreement(results, warn_mm=pcfg.calib_warn_mm, warn_deg=pcfg.calib_warn_deg))
+        log.info("calibration check (%d frames)\n%s", used_frames, format_agreement(results, **warn))
     for p in flagged:
-        log.warning("cameras %s and %s disagree by %.1f mm / %.2f deg: check the calibration",
-                    p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["correction_rotation_deg"])
+        log.warning("cameras %s and %s disagree by %.1f+-%.1f mm / %.2f+-%.2f deg: check the calibration",
+                    p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["translation_sigma_mm"],
+                    p["correction_rotation_deg"], p["rotation_sigma_deg"])
+    if suspects:
+        log.warning("CHECK CALIBRATION of camera(s): %s", ", ".join(suspects))
 
     corrections = [p["correction_translation_mm"] for p in pairs if np.isfinite(p["correction_translation_mm"])]
     return {
@@ -177,6 +183,7 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
         "ground_inlier_ratio": plane.inlier_ratio if plane is not None else None,
         "calibration_max_correction_mm": max(corrections) if corrections else None,
         "calibration_pairs_flagged": len(flagged),
+        "calibration_suspect_cameras": suspects,
     }
 
 

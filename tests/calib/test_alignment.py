@@ -137,3 +137,64 @@ def test_check_calibration_planar_scene_exact_is_not_flagged():
     assert abs(dropped.correction_translation_mm - 20.0) < 3.0 and dropped.correction_rotation_deg < 0.3
     assert abs(dropped.correction[2, 3] - 0.020) < 0.003
     assert format_agreement([dropped]).splitlines()[2].endswith("CHECK CALIBRATION")
+
+
+def ring_scene_views(seed=0, frames=2, noise=0.002):
+    """Four cameras on a ring (radius 3 m, 1.6 m high) looking at a floor with two boxes and a
+    'person' (a vertical cylinder) at another place each frame. Each view samples, per frame,
+    the surfaces turned towards it within 4.5 m, with noise along its rays."""
+    rng = np.random.default_rng(seed)
+    az = np.radians([45, 135, 225, 315])
+    centers = np.column_stack([3 * np.cos(az), 3 * np.sin(az), np.full(4, 1.6)])
+    boxes = [([-0.4, 0.5, 0], [0.5, 0.4, 0.6], 0.3), ([0.5, -0.3, 0], [0.4, 0.6, 0.4], -0.5)]
+
+    def surfaces(person_xy):
+        floor = np.column_stack([rng.uniform(-2.5, 2.5, (20000, 2)), np.zeros(20000)])
+        parts, normals = [floor], [np.tile([0, 0, 1.0], (20000, 1))]
+        for c, s, y in boxes:
+            pts = box_surface(rng, np.array(c), np.array(s), y, 6000)
+            local = (pts - np.array(c) - [0, 0, s[2] / 2]) @ np.array(
+                [[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
+            n = np.zeros_like(local)
+            k = np.argmax(np.abs(local) / (np.array(s) / 2), axis=1)
+            n[np.arange(len(n)), k] = np.sign(local[np.arange(len(n)), k])
+            n = n @ np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]]).T
+            parts.append(pts), normals.append(n)
+        t = rng.uniform(0, 2 * np.pi, 8000)
+        radial = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)])
+        parts.append(np.column_stack([person_xy[0] + 0.15 * radial[:, 0], person_xy[1] + 0.15 * radial[:, 1],
+                                      rng.uniform(0, 1.7, 8000)]))
+        normals.append(radial)
+        return np.concatenate(parts), np.concatenate(normals)
+
+    views = [[] for _ in centers]
+    for f in range(frames):
+        person = rng.uniform(-0.8, 0.8, 2)
+        for c, centre in enumerate(centers):
+            pts, n = surfaces(person)
+            ray = pts - centre
+            dist = np.linalg.norm(ray, axis=1)
+            seen = ((n * -ray).sum(1) > 0.1 * dist) & (dist < 4.5)
+            ray = ray[seen] / dist[seen, None]
+            views[c].append(pts[seen] + ray * rng.normal(0, noise, (int(seen.sum()), 1)))
+    return views, centers
+
+
+def test_ring_exact_not_flagged_drifted_camera_named():
+    from intercap.calib.alignment import suspect_cameras
+
+    views, centers = ring_scene_views()
+    names = ["c0", "c1", "c2", "c3"]
+    exact = check_calibration(views, names, centers)
+    print(format_agreement(exact))
+    assert len(exact) == 4 and not any(r.flagged for r in exact) and suspect_cameras(exact) == []
+    assert all(r.correction_translation_mm < 3.0 for r in exact)
+    # camera c2 moved by 10 mm and 0.5 deg (about the rig centre), as a drifted extrinsic would move its points
+    R = rotation([0.2, -0.4, 0.9], 0.5)
+    t = 0.010 * np.array([0.6, 0.8, 0.0])
+    moved = [v if i != 2 else [f @ R.T + t for f in v] for i, v in enumerate(views)]
+    drifted = check_calibration(moved, names, centers)
+    print(format_agreement(drifted))
+    flagged = {(r.cam_a, r.cam_b) for r in drifted if r.flagged}
+    assert flagged == {("c1", "c2"), ("c2", "c3")}
+    assert suspect_cameras(drifted) == ["c2"]

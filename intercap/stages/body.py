@@ -668,6 +668,9 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]}, dtype=model.dtype)
     valid, reproj, seconds = (np.concatenate([p[key] for p in parts]) for key in ("valid", "reprojection_px", "seconds"))
     cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
+    if not valid.any():
+        log.warning("body: no frame has a body fit (no person seen in any view: check keypoints/, masks/ "
+                    "or the detector's output in OUT/detect/)")
     figures = write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, cfg.body, cameras)
     return {**figures, "workers": len(chunks)}
 

@@ -13,10 +13,13 @@ settings (`run_pipeline`, as `intercap run` does), and the bench prints:
 
     python -m tools.bench_pipeline [--frames 150] [--width 640 --height 576] [--cameras 4] [--fps 30]
                                    [--keep DIR] [--set SECTION.KEY=VALUE ...] [--profile]
+    python -m tools.bench_pipeline --session data_samples/sample [--set run.device=cuda]
 
 Quick check: `--frames 30 --width 320 --height 288` (30 frames resample the script: 7x faster
 motion than capture rate, so accuracy is not comparable with the full-size figures).
 --keep DIR keeps (and reuses) the generated session there; the pipeline is always redone.
+--session DIR runs on an existing session with ground truth (the committed sample, a kept one)
+instead of generating one. With `--set run.device=cuda` the peak GPU memory is printed too.
 --profile wraps the pipeline in pyinstrument (when installed) and prints its top entries
 (self time); with --keep the full tree goes to OUT/profile.txt.
 """
@@ -123,6 +126,14 @@ def run(session: Path, out: Path, overrides: list[str], profile: bool) -> tuple[
     return metrics, wall, cpu, memory.peak_mb, summary
 
 
+def peak_gpu_mb() -> float | None:
+    """Peak memory torch allocated on the GPU in this process, None where CUDA was not used."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.cuda.is_available() or not torch.cuda.is_initialized():
+        return None
+    return torch.cuda.max_memory_allocated() / 2**20
+
+
 def fmt(value, digits=1) -> str:
     return "-" if not isinstance(value, (int, float)) or value != value else f"{value:.{digits}f}"
 
@@ -135,6 +146,7 @@ def main(argv=None) -> None:
     parser.add_argument("--height", type=int, default=576)
     parser.add_argument("--cameras", type=int, default=4)
     parser.add_argument("--script", default="pick_place", help="pick_place | lift_drink | push_chair")
+    parser.add_argument("--session", type=Path, help="run on this session (with ground_truth/) instead of generating one")
     parser.add_argument("--keep", type=Path, help="keep (and reuse) the session and the results here")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
     parser.add_argument("--profile", action="store_true", help="profile with pyinstrument (if installed)")
@@ -147,6 +159,9 @@ def main(argv=None) -> None:
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
     tag = f"{args.script}_{args.frames or 'natural'}f_{args.fps:g}fps_{args.cameras}v_{args.width}x{args.height}"
     session, out = work / tag, work / f"{tag}_out"
+    if args.session is not None:
+        tag = args.session.resolve().name
+        session, out = args.session, work / f"{tag}_out"
     try:
         start = time.perf_counter()
         synth_mb = make_session(session, synth)
@@ -172,6 +187,9 @@ def main(argv=None) -> None:
     print(f"{'wall':10s} {wall / T:8.3f} {wall:8.1f}   (run_pipeline, model loading included)")
     print(f"{'cpu':10s} {cpu / T:8.3f} {cpu:8.1f}   (CPU time of all threads and workers: the figure to trust on a busy machine)")
     print(f"peak RSS {peak_mb:.0f} MB (pipeline and its workers together)" + (f"; generator {synth_mb:.0f} MB" if synth_mb else ""))
+    gpu_mb = peak_gpu_mb()
+    if gpu_mb is not None:
+        print(f"peak GPU memory {gpu_mb:.0f} MB allocated by torch")
     print()
     print(format_table(result))
     print()

@@ -126,7 +126,9 @@ class PersonPoints:
         self.cfg = cfg
         self.session_masks = cfg.use_session_masks  # where a view and frame has its own mask file
         derives = not cfg.use_session_masks or session.missing("mask_person").any()
-        self.rays = [pixel_rays(cameras.select([c]), cam.height, cam.width)[0] for c, cam in enumerate(session.cameras)]
+        # kept on the CPU: only read as numpy when picking points
+        self.rays = [pixel_rays(cameras.select([c]), cam.height, cam.width)[0].cpu()
+                     for c, cam in enumerate(session.cameras)]
         self._background = None
         self._object = None
         poses = per_frame_result(out_dir, "object", "object_poses.npz")
@@ -194,7 +196,7 @@ class PersonPoints:
         B, C, P = len(frame_ids), self.session.num_cameras, self.cfg.points_per_view
         points = np.zeros((B, C, P, 3), np.float32)
         valid = np.zeros((B, C, P), bool)
-        T = self.cameras.T_world_from_cam.numpy()
+        T = self.cameras.T_world_from_cam.cpu().numpy()
         for b, f in enumerate(frame_ids):
             rng = np.random.default_rng([self.cfg.seed, int(f)])
             for c in range(C):
@@ -377,8 +379,10 @@ class BodySpheres:
                 a, b = segment[i], segment[j]
                 if a != b and (a, b) not in cls.ADJACENT and (b, a) not in cls.ADJACENT:
                     pairs.append((i, j))
-        spheres = cls(torch.tensor(start), torch.tensor(end), torch.tensor(fraction, dtype=torch.float32),
-                      torch.tensor(radii, dtype=torch.float32), torch.tensor(pairs))
+        device = out.joints.device
+        spheres = cls(torch.tensor(start, device=device), torch.tensor(end, device=device),
+                      torch.tensor(fraction, dtype=torch.float32, device=device),
+                      torch.tensor(radii, dtype=torch.float32, device=device), torch.tensor(pairs, device=device))
         centres = spheres.centres(out.joints.float())
         resting = losses.sphere_self_penetration(centres, spheres.radii, spheres.pairs)
         if float(resting) > 0:  # e.g. arms close to the trunk at rest: those pairs are dropped
@@ -426,13 +430,15 @@ class BodyFitter:
         self.cameras = cameras
         self.cfg = cfg
         names = model.body_joint_names
-        self.free_bones = torch.tensor([i for i, n in enumerate(names) if not n.startswith(FROZEN_BONE_PREFIXES)])
+        device = cameras.K.device
+        self.free_bones = torch.tensor([i for i, n in enumerate(names) if not n.startswith(FROZEN_BONE_PREFIXES)],
+                                       device=device)
         focal = cameras.K[:, 0, 0]
         self.scale_px = focal / 1000.0  # (C,)
-        weights = torch.ones(NUM_BODY_HANDS)
+        weights = torch.ones(NUM_BODY_HANDS, device=device)
         weights[NUM_BODY:] = cfg.hand_keypoint_weight
         self.joint_weights = weights
-        orient = torch.zeros(NUM_BODY_HANDS)
+        orient = torch.zeros(NUM_BODY_HANDS, device=device)
         orient[ORIENT_KEYPOINTS] = 1.0
         self.orient_weights = orient
         self.subset = model.fitting_subsample.to(cameras.K.device)
@@ -461,7 +467,7 @@ class BodyFitter:
         count = w.sum(1)
         mean = lambda x: (x * w[..., None]).sum(1) / count.clamp(min=1)[:, None]  # noqa: E731
         R0 = axis_angle_to_matrix(params.global_orient)  # (B, 3, 3)
-        up = R0 @ torch.as_tensor(self.model.up_axis, dtype=R0.dtype)  # (B, 3)
+        up = R0 @ torch.as_tensor(self.model.up_axis, dtype=R0.dtype, device=R0.device)  # (B, 3)
         a = placed - mean(placed)[:, None]
         b = target - mean(target)[:, None]
         sin = (torch.cross(a, b, dim=-1) * up[:, None]).sum(-1).mul(w).sum(1)
@@ -616,7 +622,7 @@ def draw_overlay(session, model, params: BodyParams, frame_id: int, cameras: Cam
         kps = model(params).keypoints[0, :NUM_BODY]
         pix, z = project(kps, cameras.select([0]))
     canvas = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    pts = pix[0].numpy()
+    pts = pix[0].cpu().numpy()
     for a, b in BODY_25_EDGES:
         if z[0, a] > 0 and z[0, b] > 0:
             cv2.line(canvas, tuple(int(v) for v in pts[a]), tuple(int(v) for v in pts[b]), (0, 220, 0), 2)
@@ -646,7 +652,8 @@ def upright_template(model, up: np.ndarray) -> BodyParams:
     angle = np.arctan2(np.linalg.norm(axis), model_up @ up)
     if np.linalg.norm(axis) < 1e-9:  # parallel or opposite: any axis perpendicular to model up
         axis = np.cross(model_up, np.eye(3)[np.argmin(np.abs(model_up))])
-    rotvec = torch.as_tensor(axis / np.linalg.norm(axis) * angle, dtype=template.global_orient.dtype)
+    rotvec = torch.as_tensor(axis / np.linalg.norm(axis) * angle, dtype=template.global_orient.dtype,
+                             device=template.global_orient.device)
     R = axis_angle_to_matrix(rotvec) @ axis_angle_to_matrix(template.global_orient[0])
     template.global_orient[0] = matrix_to_axis_angle(R)
     return template
@@ -665,7 +672,8 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     parts = run_chunks(fit_chunk, chunks, (where, cfg, out_dir), T, "body", progress)
     model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
     fitted = BodyParams.from_numpy_dict(
-        {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]}, dtype=model.dtype)
+        {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]}, dtype=model.dtype,
+        device=model.faces.device)
     valid, reproj, seconds = (np.concatenate([p[key] for p in parts]) for key in ("valid", "reprojection_px", "seconds"))
     cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
     if not valid.any():
@@ -702,7 +710,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     seconds = np.zeros(T)
     if checkpoint.exists():
         saved = np.load(checkpoint)
-        fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype)
+        fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype, device=model.faces.device)
         done, valid, reproj, seconds = saved["done"], saved["valid"], saved["reprojection_px"], saved["seconds"]
         log.info("body: resuming frames %d-%d, %d of %d already fitted", chunk.lo, chunk.hi - 1, int(done.sum()), T)
         queue.put(int(done.sum()))
@@ -718,8 +726,9 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         ids = frame_ids[batch]
         kps = keypoint_source.batch(ids, bcfg.min_keypoint_confidence)
         points, point_valid = person.batch(ids, kps)
-        obs = BodyObservations(ids, torch.from_numpy(kps), points, point_valid)
-        usable = usable_frames(obs.keypoints, obs.point_valid, bcfg).numpy()
+        device = cameras.K.device
+        obs = BodyObservations(ids, torch.from_numpy(kps).to(device), points.to(device), point_valid.to(device))
+        usable = usable_frames(obs.keypoints, obs.point_valid, bcfg).cpu().numpy()
         if usable.any():
             keep = np.flatnonzero(usable)
             sub = BodyObservations(ids[keep], obs.keypoints[keep], obs.points[keep], obs.point_valid[keep])

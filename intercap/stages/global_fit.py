@@ -119,7 +119,7 @@ def load_per_frame(session, out_dir: Path, model) -> PerFrameResults:
         raise GlobalError(f"{body_file}: no frame has a body fit; nothing to refine")
     arrays = {k: fill_gaps(saved[k], body_valid).astype(np.float32) for k in PARAM_FIELDS}
     arrays["shape"][:] = saved["shape_mean"]
-    body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype)
+    body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
 
     poses = np.load(object_file)
     object_valid = poses["valid"].astype(bool)
@@ -139,15 +139,15 @@ def hand_object_distance(model, per_frame: PerFrameResults, shape: "ObjectShape"
     """(T, 2) metres from each hand's contact region to the object's surface in the per-frame results."""
     ids = [torch.as_tensor(model.contact_regions[h]) for h in HANDS]
     distance = np.zeros((len(per_frame.contact), 2))
-    R = torch.as_tensor(per_frame.R, dtype=torch.float32)
-    t = torch.as_tensor(per_frame.t, dtype=torch.float32)
+    R = torch.as_tensor(per_frame.R, dtype=torch.float32, device=model.faces.device)
+    t = torch.as_tensor(per_frame.t, dtype=torch.float32, device=model.faces.device)
     with torch.no_grad():
         for s in range(0, len(distance), 32):
             sl = slice(s, s + 32)
             vertices = model.sparse_forward(per_frame.body[sl], torch.cat(ids)).vertices
             sd = shape.signed_distance((vertices - t[sl, None]) @ R[sl])
-            distance[sl, 0] = sd[:, :len(ids[0])].min(1).values.numpy()
-            distance[sl, 1] = sd[:, len(ids[0]):].min(1).values.numpy()
+            distance[sl, 0] = sd[:, :len(ids[0])].min(1).values.cpu().numpy()
+            distance[sl, 1] = sd[:, len(ids[0]):].min(1).values.cpu().numpy()
     return distance
 
 
@@ -311,8 +311,8 @@ class GlobalFitter:
         rest = rest[~torch.isin(rest, subset)]
         self.vertex_ids = torch.cat([subset, rest])
         position = {int(v): i for i, v in enumerate(self.vertex_ids.tolist())}
-        self.hand_slots = [torch.tensor([position[int(v)] for v in r]) for r in regions]
-        self.prior_slots = {k: torch.tensor([position[int(v)] for v in p.point_ids.tolist()])
+        self.hand_slots = [torch.tensor([position[int(v)] for v in r], device=subset.device) for r in regions]
+        self.prior_slots = {k: torch.tensor([position[int(v)] for v in p.point_ids.tolist()], device=subset.device)
                             for k, p in self.priors.items()}
         self.free_bones = self.body.free_bones
         self.gravity = None  # (3,) m/s^2 for the free-flight term; set by `run` when episodes exist
@@ -329,6 +329,7 @@ class GlobalFitter:
 
     def from_object(self, points: torch.Tensor, R: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
         """Object coordinates (M, 3) -> world (W, M, 3)."""
+        points = points.to(R.device)  # the object's samples live on the CPU
         return (points - self.shape.centroid.to(points)) @ R.transpose(1, 2) + centre[:, None]
 
     # -- energy ---------------------------------------------------------------------------
@@ -366,7 +367,7 @@ class GlobalFitter:
             terms["ground"] = (losses.ground_penetration(vertices, point, normal)
                                + losses.ground_penetration(object_world, point, normal))
         if self.gravity is not None and data.flight is not None and bool((data.flight >= 0).any()):
-            times = torch.arange(len(centre), dtype=centre.dtype) / self.fps
+            times = torch.arange(len(centre), dtype=centre.dtype, device=centre.device) / self.fps
             terms["flight"] = losses.flight_parabola(centre, data.flight, times, self.gravity.to(centre))
         if len(vertices) >= 3:
             terms["object_acceleration"] = losses.vertex_acceleration(object_world, self.fps)
@@ -395,9 +396,9 @@ class GlobalFitter:
         names = ("global_orient", "transl", "left_hand_pose", "right_hand_pose")
         leaves = {n: getattr(init, n)[fixed:].detach().clone() for n in names}
         leaves["body_pose"] = init.body_pose[fixed:, free].detach().clone()
-        leaves["rotation"] = torch.zeros(W - fixed, 3, dtype=R0.dtype)
-        leaves["shift"] = torch.zeros(W - fixed, 3, dtype=R0.dtype)
-        still = torch.zeros(fixed, 3, dtype=R0.dtype)
+        leaves["rotation"] = torch.zeros(W - fixed, 3, dtype=R0.dtype, device=R0.device)
+        leaves["shift"] = torch.zeros(W - fixed, 3, dtype=R0.dtype, device=R0.device)
+        still = torch.zeros(fixed, 3, dtype=R0.dtype, device=R0.device)
 
         def current():
             values = {n: torch.cat([getattr(init, n)[:fixed].detach(), leaves[n]]) for n in names}
@@ -456,6 +457,7 @@ class Observations:
         from intercap.stages.object import ObjectTracker
 
         self.session, self.cfg = session, cfg
+        self.device = cameras.K.device  # where the window's tensors go (the fit's device)
         self.keypoints = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints)
         self.person = PersonPoints(session, cameras, cfg.body, out_dir)
         self.tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
@@ -474,7 +476,8 @@ class Observations:
         ids = self.session.frame_ids[frames]
         kps = self.keypoints.batch(ids, self.cfg.body.min_keypoint_confidence)
         points, point_valid = self.person.batch(ids, kps)
-        obs = BodyObservations(ids, torch.from_numpy(kps), points, point_valid)
+        device = self.device
+        obs = BodyObservations(ids, torch.from_numpy(kps).to(device), points.to(device), point_valid.to(device))
         P = self.cfg.global_.object_points_per_view * self.session.num_cameras
         cloud = np.zeros((len(frames), P, 3), np.float32)
         cloud_valid = np.zeros((len(frames), P), bool)
@@ -485,9 +488,10 @@ class Observations:
         R = torch.as_tensor(per_frame.R[frames], dtype=torch.float32)
         t = torch.as_tensor(per_frame.t[frames], dtype=torch.float32)
         reference = (shape.samples @ R.transpose(1, 2)) + t[:, None]
-        return WindowData(obs, torch.from_numpy(cloud), torch.from_numpy(cloud_valid), reference,
-                          torch.as_tensor(per_frame.object_confidence[frames], dtype=torch.float32),
-                          torch.as_tensor(per_frame.grasping[frames], dtype=torch.float32))
+        return WindowData(obs, torch.from_numpy(cloud).to(device), torch.from_numpy(cloud_valid).to(device),
+                          reference.to(device),
+                          torch.as_tensor(per_frame.object_confidence[frames], dtype=torch.float32, device=device),
+                          torch.as_tensor(per_frame.grasping[frames], dtype=torch.float32, device=device))
 
 
 # ---------------------------------------------------------------------------
@@ -514,7 +518,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         problem = GlobalProblem(session, cfg, out_dir)
     fitted = BodyParams.from_numpy_dict(
         {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]},
-        dtype=problem.model.dtype)
+        dtype=problem.model.dtype, device=problem.model.faces.device)
     R_all = torch.from_numpy(np.concatenate([p["R"] for p in parts]))
     centre_all = torch.from_numpy(np.concatenate([p["centre"] for p in parts]))
     history = [h for p in parts for h in p["history"]]
@@ -575,14 +579,15 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
     plan = [(a + lo, b + lo, fixed, commit + lo) for a, b, fixed, commit in
             windows(hi - lo, g.window_frames, g.window_overlap, g.window_history)]
     fitted = per_frame.body.clone()
-    R_all = torch.as_tensor(per_frame.R, dtype=torch.float32)
-    centre_all = torch.as_tensor(per_frame.t, dtype=torch.float32) + R_all @ shape.centroid
+    device = problem.model.faces.device  # the windows are fitted there
+    R_all = torch.as_tensor(per_frame.R, dtype=torch.float32, device=device)
+    centre_all = torch.as_tensor(per_frame.t, dtype=torch.float32, device=device) + R_all @ shape.centroid.to(R_all)
     checkpoint = out_dir / "global" / f"progress_{chunk.lo:06d}_{chunk.hi:06d}.npz"
     next_window, seconds, history = 0, 0.0, []
     if checkpoint.exists():
         saved = np.load(checkpoint)
-        fitted = BodyParams.from_numpy_dict(saved, dtype=problem.model.dtype)
-        R_all, centre_all = torch.from_numpy(saved["R"]), torch.from_numpy(saved["centre"])
+        fitted = BodyParams.from_numpy_dict(saved, dtype=problem.model.dtype, device=device)
+        R_all, centre_all = torch.from_numpy(saved["R"]).to(device), torch.from_numpy(saved["centre"]).to(device)
         next_window, seconds = int(saved["next_window"]), float(saved["seconds"])
         log.info("global: frames %d-%d resuming at window %d of %d", chunk.lo, chunk.hi - 1, next_window + 1, len(plan))
     reported = chunk.lo
@@ -591,7 +596,7 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
         tick = time.perf_counter()
         frames = np.arange(start, end)
         data = problem.observations.window(frames, per_frame, shape)
-        data.flight = torch.as_tensor(problem.flight["episode_of_frame"][frames])
+        data.flight = torch.as_tensor(problem.flight["episode_of_frame"][frames], device=device)
         body, R, centre, stats = problem.fitter.fit_window(fitted[start:end], R_all[start:end],
                                                            centre_all[start:end], fixed, data)
         keep = slice(fixed, commit - start)
@@ -601,15 +606,15 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
         seconds += time.perf_counter() - tick
         history.append(stats)
         log.debug("global window %d: %s", k, stats)
-        save_npz(checkpoint, **fitted.to_numpy_dict(), R=R_all.numpy(), centre=centre_all.numpy(),
+        save_npz(checkpoint, **fitted.to_numpy_dict(), R=R_all.cpu().numpy(), centre=centre_all.cpu().numpy(),
                  next_window=k + 1, seconds=seconds)
         finished = min(commit, chunk.hi)
         if finished > reported:
             queue.put(finished - reported)
             reported = finished
     rows = slice(chunk.lo, chunk.hi)
-    return {"params": fitted.map(lambda t: t[rows]).to_numpy_dict(), "R": R_all[rows].numpy(),
-            "centre": centre_all[rows].numpy(), "history": history, "seconds": seconds}
+    return {"params": fitted.map(lambda t: t[rows]).to_numpy_dict(), "R": R_all[rows].cpu().numpy(),
+            "centre": centre_all[rows].cpu().numpy(), "history": history, "seconds": seconds}
 
 
 def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: float, g) -> dict:

@@ -121,8 +121,8 @@ def axis_rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
 
 def hard_silhouettes(vertices_world: np.ndarray, faces: np.ndarray, cameras: Cameras, sizes) -> list[np.ndarray]:
     """Binary silhouettes (H, W) per view by filling projected triangles (no gradient; for mask choice)."""
-    pix, depth = project(torch.as_tensor(vertices_world, dtype=cameras.K.dtype), cameras)
-    pix, depth = pix.numpy(), depth.numpy()
+    pix, depth = project(torch.as_tensor(vertices_world, dtype=cameras.K.dtype, device=cameras.K.device), cameras)
+    pix, depth = pix.cpu().numpy(), depth.cpu().numpy()
     out = []
     for c, (H, W) in enumerate(sizes):
         img = np.zeros((H, W), np.uint8)
@@ -276,10 +276,10 @@ class ObjectTracker:
         """World points (N, 3) of pixels (ys, xs) of view c at depths z (metres)."""
         if c not in self._rays:  # undistorting every pixel is the costly part: once per camera
             H, W = self.sizes[c]
-            self._rays[c] = pixel_rays(self.cameras.select([c]), H, W, 1)[0].double().numpy().reshape(H, W, 2)
+            self._rays[c] = pixel_rays(self.cameras.select([c]), H, W, 1)[0].double().cpu().numpy().reshape(H, W, 2)
         ray = self._rays[c][ys, xs]  # (N, 2) undistorted x/z, y/z
         cam = np.concatenate([ray * z[:, None], z[:, None]], 1)
-        T = self.cameras.T_world_from_cam[c].double().numpy()
+        T = self.cameras.T_world_from_cam[c].double().cpu().numpy()
         return cam @ T[:3, :3].T + T[:3, 3]
 
     def _points(self, c: int, depth: np.ndarray) -> np.ndarray:
@@ -294,7 +294,7 @@ class ObjectTracker:
 
     def world_vertices_np(self, R, t) -> np.ndarray:
         """Vertices of the original mesh under object->world pose (R, t)."""
-        return (self.vertices_c.double().numpy() + self.centroid) @ np.asarray(R).T + np.asarray(t)
+        return (self.vertices_c.double().cpu().numpy() + self.centroid) @ np.asarray(R).T + np.asarray(t)
 
     def _to_centre(self, R, t) -> np.ndarray:
         return np.asarray(R) @ self.centroid + np.asarray(t)
@@ -306,7 +306,9 @@ class ObjectTracker:
     def crops_for(self, obs: Observation, R, t) -> torch.Tensor:
         """(C, 4) square boxes covering the projected pose and the observed mask, per view."""
         cfg = self.cfg
-        pix, _ = project(torch.as_tensor(self.world_vertices_np(R, t), dtype=torch.float32), self.cameras)
+        pix, _ = project(torch.as_tensor(self.world_vertices_np(R, t), dtype=torch.float32, device=self.device),
+                         self.cameras)
+        pix = pix.cpu()  # the boxes (and so the crops) are made on the CPU
         boxes = []
         for c, (H, W) in enumerate(self.sizes):
             lo, hi = pix[c].amin(0).numpy(), pix[c].amax(0).numpy()
@@ -352,9 +354,13 @@ class ObjectTracker:
         # The object's share of the pixels whose label is known: where derived masks lose half of a
         # dark chair's depth to dropouts, the chair still fills its cells, at half the weight.
         obs_mask = torch.where(obs_known > 1e-3, obs_mask / obs_known.clamp(min=1e-3), torch.zeros_like(obs_mask))
-        view_weight = torch.as_tensor(obs.has_view, dtype=torch.float32)
-        r6 = matrix_to_rotation_6d(torch.tensor(np.asarray(R0), dtype=torch.float32)).clone().requires_grad_(True)
-        t_c = torch.as_tensor(self._to_centre(R0, t0), dtype=torch.float32).clone().requires_grad_(True)
+        # the windows are cut on the CPU; the fit runs where the mesh and cameras are
+        obs_mask, obs_depth, obs_known = (x.to(self.device) for x in (obs_mask, obs_depth, obs_known))
+        view_weight = torch.as_tensor(obs.has_view, dtype=torch.float32, device=self.device)
+        r6 = matrix_to_rotation_6d(torch.tensor(np.asarray(R0), dtype=torch.float32, device=self.device)
+                                   ).clone().requires_grad_(True)
+        t_c = torch.as_tensor(self._to_centre(R0, t0), dtype=torch.float32, device=self.device
+                              ).clone().requires_grad_(True)
         optimiser = torch.optim.Adam([{"params": [r6], "lr": cfg.lr_rotation}, {"params": [t_c], "lr": cfg.lr_translation}])
         best = (np.inf, None, None)
         stalled, decays = 0, 0
@@ -389,14 +395,15 @@ class ObjectTracker:
             # a hand over the object hides it from the mask without the pose being wrong.
             seen = (obs_known > 0.25) & (self._visible(out.depth[0], obs_depth, obs_mask) > 0.5)
             confidence = self._iou(out.coverage[0] & seen, (obs_mask > 0.5) & seen, obs.has_view)
-        R = R.detach().double().numpy()
-        return Fit(R=R, t=self._from_centre(R, t_c.detach().double().numpy()), energy=float(total), confidence=confidence)
+        R = R.detach().double().cpu().numpy()
+        return Fit(R=R, t=self._from_centre(R, t_c.detach().double().cpu().numpy()), energy=float(total),
+                   confidence=confidence)
 
     @staticmethod
     def _iou(rendered: torch.Tensor, observed: torch.Tensor, has_view: np.ndarray) -> float:
         inter = (rendered & observed).flatten(1).sum(1).float()
         union = (rendered | observed).flatten(1).sum(1).float().clamp(min=1)
-        iou = (inter / union).numpy()[has_view]
+        iou = (inter / union).cpu().numpy()[has_view]
         return float(iou.mean()) if len(iou) else 0.0
 
     # -- initialisation ----------------------------------------------------------------------

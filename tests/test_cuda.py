@@ -1,0 +1,177 @@
+"""run.device=cuda: the body model, the body fit's energies and the priors give on the GPU what they give
+on the CPU, and `intercap run --set run.device=cuda` fits the sample as well as the CPU does.
+
+Skipped without a CUDA device (CI has none); run these where one is."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from conftest import SAMPLE_SESSION, trimmed_copy
+
+pytestmark = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+
+DEVICE = "cuda"
+RTOL, ATOL = 1e-4, 1e-5  # float32 on both sides; TF32 is switched off below
+FRAMES = 12  # of the sample, for the whole run: its first contact is at frame 10
+
+
+@pytest.fixture(autouse=True)
+def exact_float32():
+    """TF32 (cuDNN's default for convolutions) would make the GPU differ from the CPU by ~1e-3."""
+    saved = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = False
+    yield
+    torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = saved
+
+
+@pytest.fixture(scope="module")
+def models():
+    """(the anny model on the CPU, the same on the GPU)."""
+    from intercap.body_models import load_body_model
+
+    return load_body_model("anny", device="cpu"), load_body_model("anny", device=DEVICE)
+
+
+def close(on_gpu: torch.Tensor, on_cpu: torch.Tensor, what: str, rtol: float = RTOL, atol: float = ATOL) -> None:
+    assert on_gpu.device.type == "cuda", f"{what}: computed on {on_gpu.device}, not the GPU"
+    torch.testing.assert_close(on_gpu.detach().cpu(), on_cpu.detach(), rtol=rtol, atol=atol,
+                               msg=lambda m: f"{what}: {m}")
+
+
+def posed_params(model, batch: int, seed: int = 0):
+    """A batch of varied poses, shapes and expressions (CPU tensors)."""
+    g = torch.Generator().manual_seed(seed)
+    params = model.init_params(batch)
+    with torch.no_grad():
+        for name, scale in (("body_pose", 0.2), ("left_hand_pose", 0.2), ("right_hand_pose", 0.2),
+                            ("global_orient", 0.5), ("transl", 1.0)):
+            value = getattr(params, name)
+            value.copy_(scale * torch.randn(value.shape, generator=g, dtype=value.dtype))
+        params.shape.copy_(0.2 + 0.6 * torch.rand(params.shape.shape, generator=g, dtype=params.shape.dtype))
+        params.expression.copy_(0.3 * torch.rand(params.expression.shape, generator=g, dtype=params.expression.dtype))
+    return params
+
+
+def test_body_model_forward_on_gpu_matches_cpu(models):
+    cpu, gpu = models
+    assert gpu.faces.is_cuda and gpu.coco_weights.is_cuda
+    assert all(t.is_cuda for t in gpu.init_params(2).tensors().values())
+    params = posed_params(cpu, 3)
+    with torch.no_grad():
+        a, b = cpu(params), gpu(params.to(DEVICE))
+        for name in ("vertices", "joints", "keypoints"):
+            close(getattr(b, name), getattr(a, name), f"forward {name}")
+        ids = cpu.fitting_subsample
+        a = cpu.sparse_forward(params, ids)
+        b = gpu.sparse_forward(params.to(DEVICE), ids.to(DEVICE))
+        for name in ("vertices", "joints", "keypoints"):
+            close(getattr(b, name), getattr(a, name), f"sparse_forward {name}")
+
+
+def test_priors_and_motion_prior_on_gpu_match_cpu(models):
+    from intercap.energies import losses, priors
+    from intercap.energies.motion_prior import body_motion_smoothness, hand_motion_smoothness
+
+    cpu, _ = models
+    params = posed_params(cpu, 4, seed=1)
+    terms = {
+        "learned_pose_prior": lambda p: priors.learned_pose_prior(p.body_pose),
+        "joint_limits": lambda p: priors.joint_limit_penalty(p.body_pose),
+        "extreme_bending": lambda p: priors.extreme_bending(p.body_pose),
+        "hand_prior": lambda p: (priors.hand_pose_prior(p.left_hand_pose, "L")
+                                 + priors.hand_pose_prior(p.right_hand_pose, "R")),
+        "shape_prior": lambda p: priors.shape_prior(p.shape),
+        "expression_prior": lambda p: priors.expression_prior(p.expression),
+    }
+    for name, term in terms.items():
+        close(term(params.to(DEVICE)), term(params), name)
+
+    # a short motion: poses blended from one to another while the body walks along x
+    a, b = posed_params(cpu, 1, seed=2), posed_params(cpu, 1, seed=3)
+    w = torch.linspace(0, 1, 9)[:, None]
+    motion = a.map(lambda t: t.expand(9, *t.shape[1:]).clone())
+    motion.body_pose = (1 - w[..., None]) * a.body_pose + w[..., None] * b.body_pose
+    motion.transl = torch.stack([w[:, 0] * 0.6, torch.zeros(9), torch.full((9,), 0.9)], -1)
+    with torch.no_grad():
+        vertices = cpu(motion).vertices  # (9, V, 3)
+    up = torch.tensor([0.0, 0.0, 1.0])
+    close(body_motion_smoothness(vertices.to(DEVICE), 30.0, up), body_motion_smoothness(vertices, 30.0, up),
+          "body motion prior")
+    close(hand_motion_smoothness(vertices.to(DEVICE), 30.0, "L", up), hand_motion_smoothness(vertices, 30.0, "L", up),
+          "hand motion prior")
+    close(losses.vertex_acceleration(vertices.to(DEVICE), 30.0), losses.vertex_acceleration(vertices, 30.0),
+          "vertex acceleration")
+
+
+def test_body_fit_energies_on_gpu_match_cpu(models, tmp_path):
+    """The body stage's fitter on the sample's first frames: initialisation and every term of its last phase."""
+    from intercap.config import BodyConfig
+    from intercap.geometry.cameras import Cameras
+    from intercap.session import Session
+    from intercap.stages.body import (
+        PHASES,
+        BodyFitter,
+        BodyObservations,
+        KeypointSource,
+        PersonPoints,
+        upright_template,
+        world_up,
+    )
+
+    session = Session.load(SAMPLE_SESSION)
+    bcfg = BodyConfig()
+    ids = session.frame_ids[:4]
+    kps = torch.from_numpy(KeypointSource(session, tmp_path).batch(ids, bcfg.min_keypoint_confidence))
+    fits = {}
+    for model, device in zip(models, ("cpu", DEVICE)):
+        cameras = Cameras.from_infos(session.cameras, device=device)
+        points, valid = PersonPoints(session, cameras, bcfg, tmp_path).batch(ids, kps.numpy())
+        obs = BodyObservations(ids, kps.to(device), points.to(device), valid.to(device))
+        fitter = BodyFitter(model, cameras, bcfg)
+        init = fitter.initialise(obs, upright_template(model, world_up(session, tmp_path)))
+        fits[device] = (fitter, obs, init)
+    (fc, oc, pc), (fg, og, pg) = fits["cpu"], fits[DEVICE]
+    close(pg.global_orient, pc.global_orient, "initial orientation", atol=1e-3)
+    close(pg.transl, pc.transl, "initial translation (m)", atol=1e-3)
+
+    terms = PHASES[-1].terms
+    with torch.no_grad():
+        matches = fc.correspondences(pc, oc)
+        on_gpu = fg.correspondences(pc.to(DEVICE), og)  # visibility and nearest vertices on the GPU
+        assert on_gpu[0].is_cuda and on_gpu[1].is_cuda
+        same = (on_gpu[0].cpu() == matches[0]).double().mean()
+        assert same > 0.98, f"only {same:.3f} of the depth correspondences agree"
+        expected = fc.energy_terms(pc, oc, terms, matches)
+        got = fg.energy_terms(pc.to(DEVICE), og, terms, tuple(m.to(DEVICE) for m in matches))
+    assert set(got) == set(expected)
+    for name in expected:
+        close(got[name], expected[name], f"body term {name}")
+
+
+def test_intercap_run_on_gpu_fits_the_sample(tmp_path):
+    """`intercap run` with run.device=cuda, every stage, on the sample's first frames; the body surface is
+    as near the ground truth as the CPU run's (< 20 mm), and so is the object."""
+    from intercap.cli import main
+    from intercap.evaluation.evaluate import evaluate
+    from intercap.pipeline import available_stages
+
+    session = trimmed_copy(SAMPLE_SESSION, tmp_path / "session", FRAMES)
+    out = tmp_path / "out"
+    code = main(["run", str(session), "--out", str(out), "--quiet", "--set", "run.device=cuda",
+                 "--set", "report.enabled=false", "--set", "prepare.save_clouds=false"])
+    assert code == 0
+    assert not (out / "report").exists()
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert set(available_stages()) <= set(metrics), sorted(metrics)
+    for name in ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy", "object_poses.npz",
+                 "contact.npy", "global/DONE.json", "physics/physics.npz", f"export/{session.name}.npz"):
+        assert (out / name).exists(), name
+    assert metrics["body"]["frames_fitted"] == FRAMES
+    vertices = np.load(out / "body_vertices.npy")
+    assert vertices.shape[0] == FRAMES and np.isfinite(vertices).all()
+    result = evaluate(out, session)
+    assert result.metrics["body_surface_mm"] < 20.0, result.metrics  # the CPU run: 7.4 mm
+    assert result.metrics["object_translation_mm"] < 20.0, result.metrics  # the CPU run: 2.0 mm

@@ -34,6 +34,7 @@ SESSIONS = {
     "drink4": ("lift_drink", "cup", (0.1, 0.3, 0.4, 0.7, 0.3, 0.6), 4),
     "pick6": ("pick_place", "box", (0.9, 0.7, 0.7, 0.3, 0.8, 0.4), 6),
     "drink6": ("lift_drink", "cup", (0.8, 0.2, 0.3, 0.5, 0.6, 0.5), 6),
+    "turn1": ("turn", "box", (0.5, 0.5, 0.5, 0.5, 0.5, 0.5), 1),  # one view, the person turns round once
 }
 
 

@@ -75,6 +75,12 @@ class BodyObservations:
     def batch_size(self) -> int:
         return int(self.keypoints.shape[0])
 
+    def select(self, index) -> "BodyObservations":
+        """The observations of frames `index` (an index array; repeats allowed)."""
+        rows = torch.as_tensor(index, device=self.keypoints.device)
+        return BodyObservations(self.frame_ids[np.asarray(index)], self.keypoints[rows], self.points[rows],
+                                self.point_valid[rows])
+
 
 class KeypointSource:
     """Per view and frame, the (137, 3) OpenPose keypoints: the session's JSON where that view and
@@ -473,10 +479,8 @@ class BodyFitter:
         sin = (torch.cross(a, b, dim=-1) * up[:, None]).sum(-1).mul(w).sum(1)
         cos = ((a * b).sum(-1) - (a * up[:, None]).sum(-1) * (b * up[:, None]).sum(-1)).mul(w).sum(1)
         yaw = torch.where(count >= 2, torch.atan2(sin, cos), torch.zeros_like(sin))
-        turn = axis_angle_to_matrix(up * yaw[:, None])  # about the up axis through the torso centre
-        params.global_orient.copy_(matrix_to_axis_angle(turn @ R0).to(params.global_orient))
         centre = mean(placed)
-        params.transl.copy_(((params.transl - centre)[:, None] @ turn.transpose(1, 2))[:, 0] + centre)
+        turn_about(params, axis_angle_to_matrix(up * yaw[:, None]), centre)  # about up through the torso centre
         params.transl[count >= 1] += (mean(target) - centre)[count >= 1]
         lone = (count == 0) & obs.point_valid.flatten(1).any(1)
         if lone.any():
@@ -587,10 +591,82 @@ class BodyFitter:
             params = current().detach()
             stats[phase.name] = {"energy": result.energy, "steps": result.steps,
                                  "evaluations": result.evaluations, "stopped": result.stopped}
+        stats["terms"] = self.final_terms(params, obs)
+        return params, stats
+
+    def final_terms(self, params: BodyParams, obs: BodyObservations) -> dict[str, np.ndarray]:
+        """Each term of the last phase per frame, (B,), unweighted, at `params`."""
         with torch.no_grad():
             final = self.energy_terms(params, obs, PHASES[-1].terms, self.correspondences(params, obs))
-        stats["terms"] = {k: v.detach().cpu().numpy() for k, v in final.items()}
-        return params, stats
+        return {k: v.detach().cpu().numpy() for k, v in final.items()}
+
+
+def turn_about(params: BodyParams, turn: torch.Tensor, centre: torch.Tensor) -> None:
+    """Rotate each frame's body in place by `turn` (B, 3, 3) about the point `centre` (B, 3)."""
+    R0 = axis_angle_to_matrix(params.global_orient)
+    params.global_orient.copy_(matrix_to_axis_angle(turn @ R0).to(params.global_orient))
+    params.transl.copy_(((params.transl - centre)[:, None] @ turn.transpose(1, 2))[:, 0] + centre)
+
+
+def fit_to_data_mm(vertices: torch.Tensor, obs: BodyObservations) -> np.ndarray:
+    """(B,) per frame, the median distance (mm) from its segmented person points to the nearest vertex
+    of its fitted mesh (all vertices: a few mm above the distance to the surface at anny's vertex
+    spacing); NaN without points. The body's fit-to-data figure: a fit far from its own depth points
+    has failed, whatever its reprojection. Median: mask edges carry mixed-depth outliers."""
+    out = np.full(vertices.shape[0], np.nan)
+    with torch.no_grad():
+        for b in range(vertices.shape[0]):  # one frame at a time: points x vertices distances are large
+            points = obs.points[b][obs.point_valid[b]]
+            if len(points):
+                out[b] = 1000 * float(torch.cdist(points.to(vertices), vertices[b]).amin(1).median())
+    return out
+
+
+def frame_energy(fitter: BodyFitter, terms: dict[str, np.ndarray]) -> np.ndarray:
+    """(B,) each frame's weighted energy from its `final_terms`: what the fit minimises, so that fits
+    from different starts can be compared."""
+    return sum(fitter.weight(k) * v for k, v in terms.items())
+
+
+def failure_limit(recent: np.ndarray, factor: float, floor: float = 0.0) -> float:
+    """The value above which a frame's figure counts as a failed fit: `factor` times the running median
+    of the recent frames' figures (`recent`, last `track_window`), never below `floor`."""
+    finite = recent[np.isfinite(recent)]
+    median = float(np.median(finite)) if len(finite) else np.nan
+    return max(floor, factor * median) if median > 0 else (floor or np.inf)
+
+
+def refit_from_evidence(fitter: BodyFitter, obs: BodyObservations, params: BodyParams, energy: np.ndarray,
+                        failed: np.ndarray, template: BodyParams) -> tuple[BodyParams, np.ndarray]:
+    """Fit the `failed` frames again without their warm start: from the upright `template` turned to
+    the keypoints' heading, and from the same turned a quarter, a half and three quarters round (one
+    view's keypoints give the heading of a side or back view poorly). Per frame the fit of lowest
+    energy (`frame_energy`, the fit's own objective) of the five starts is kept.
+    Returns (params, replaced) for all frames of `obs`."""
+    idx = np.flatnonzero(failed)
+    n = len(idx)
+    sub = obs.select(idx)
+    init = fitter.initialise(sub, template)
+    starts = [init]
+    with torch.no_grad():
+        centre = fitter.model(init).keypoints[:, TORSO_KEYPOINTS].mean(1)
+        up = axis_angle_to_matrix(init.global_orient) @ torch.as_tensor(
+            fitter.model.up_axis, dtype=centre.dtype, device=centre.device)
+        for quarter in (1, 2, 3):
+            turned = init.clone()
+            turn_about(turned, axis_angle_to_matrix(up * (quarter * np.pi / 2)), centre)
+            starts.append(turned)
+    every = sub.select(np.tile(np.arange(n), len(starts)))  # all starts fitted as one batch
+    fitted, stats = fitter.fit(every, BodyParams.cat(starts))
+    candidates = np.concatenate([energy[idx][None], frame_energy(fitter, stats["terms"]).reshape(len(starts), n)])
+    best = np.nan_to_num(candidates, nan=np.inf).argmin(0)  # 0: keep the warm start's fit
+    params, replaced = params.clone(), np.zeros(len(energy), bool)
+    for k, (i, choice) in enumerate(zip(idx, best)):
+        if choice:
+            for name, value in params.tensors().items():
+                value[i] = getattr(fitted, name)[k + (choice - 1) * n]
+            replaced[i] = True
+    return params, replaced
 
 
 # ---------------------------------------------------------------------------
@@ -674,12 +750,14 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     fitted = BodyParams.from_numpy_dict(
         {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]}, dtype=model.dtype,
         device=model.faces.device)
-    valid, reproj, seconds = (np.concatenate([p[key] for p in parts]) for key in ("valid", "reprojection_px", "seconds"))
+    valid, reproj, seconds, gap, reinitialised = (np.concatenate([p[key] for p in parts]) for key in (
+        "valid", "reprojection_px", "seconds", "fit_to_data_mm", "reinitialised"))
     cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
     if not valid.any():
         log.warning("body: no frame has a body fit (no person seen in any view: check keypoints/, masks/ "
                     "or the detector's output in OUT/detect/)")
-    figures = write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, cfg.body, cameras)
+    figures = write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, cfg.body, cameras,
+                            fit_to_data_mm=gap.astype(np.float32), reinitialised=reinitialised)
     return {**figures, "workers": len(chunks)}
 
 
@@ -708,14 +786,20 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     valid = np.zeros(T, bool)
     reproj = np.full(T, np.nan)
     seconds = np.zeros(T)
+    gap = np.full(T, np.nan)  # fit-to-data, mm
+    prior = np.full(T, np.nan)  # the learned pose prior's energy of each frame's fit
+    reinitialised = np.zeros(T, bool)
     if checkpoint.exists():
         saved = np.load(checkpoint)
         fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype, device=model.faces.device)
         done, valid, reproj, seconds = saved["done"], saved["valid"], saved["reprojection_px"], saved["seconds"]
+        if "fit_to_data_mm" in saved:  # older checkpoints lack it
+            gap, prior, reinitialised = saved["fit_to_data_mm"], saved["pose_prior"], saved["reinitialised"]
         log.info("body: resuming frames %d-%d, %d of %d already fitted", chunk.lo, chunk.hi - 1, int(done.sum()), T)
         queue.put(int(done.sum()))
 
-    template = upright_template(model, world_up(session, out_dir))  # the next batch starts from the last fit
+    upright = upright_template(model, world_up(session, out_dir))
+    template = upright  # the next batch starts from the last fit
     batches = [np.arange(s, min(s + bcfg.batch_frames, T)) for s in range(0, T, bcfg.batch_frames)]
     for batch in batches:
         if done[batch].all():
@@ -733,7 +817,24 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
             keep = np.flatnonzero(usable)
             sub = BodyObservations(ids[keep], obs.keypoints[keep], obs.points[keep], obs.point_valid[keep])
             init = fitter.initialise(sub, template)
-            params, _ = fitter.fit(sub, init)
+            params, stats = fitter.fit(sub, init)
+            with torch.no_grad():
+                sub_gap = fit_to_data_mm(model(params).vertices, sub)
+            recent = slice(max(0, batch[0] - bcfg.track_window), batch[0])
+            failed = ((sub_gap > failure_limit(gap[recent], bcfg.track_factor, bcfg.track_floor_mm))
+                      | (stats["terms"]["pose_prior"] > failure_limit(prior[recent], bcfg.track_prior_factor)))
+            if failed.any():  # off the points, or contorted to reach them: refit those frames from the evidence
+                params, replaced = refit_from_evidence(fitter, sub, params, frame_energy(fitter, stats["terms"]), failed,
+                                                       upright)
+                reinitialised[batch[keep]] = replaced
+                log.info("body: frames %s failed (fit-to-data or pose prior); refitted from the evidence, "
+                         "%d replaced", ids[keep][failed].tolist(), int(replaced.sum()))
+                with torch.no_grad():
+                    sub_gap = fit_to_data_mm(model(params).vertices, sub)
+                    prior[batch[keep]] = priors.learned_pose_prior(params.body_pose).cpu().numpy()
+            else:
+                prior[batch[keep]] = stats["terms"]["pose_prior"]
+            gap[batch[keep]] = sub_gap
             for name, value in params.tensors().items():
                 getattr(fitted, name)[batch[keep]] = value
             reproj[batch[keep]] = reprojection_error_px(model, params, sub, cameras)
@@ -742,8 +843,10 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         done[batch] = True
         seconds[batch] = (time.perf_counter() - start) / len(batch)
         queue.put(len(batch))
-        save_npz(checkpoint, **fitted.to_numpy_dict(), done=done, valid=valid, reprojection_px=reproj, seconds=seconds)
-    return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds}
+        save_npz(checkpoint, **fitted.to_numpy_dict(), done=done, valid=valid, reprojection_px=reproj, seconds=seconds,
+                 fit_to_data_mm=gap, pose_prior=prior, reinitialised=reinitialised)
+    return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds,
+            "fit_to_data_mm": gap, "reinitialised": reinitialised}
 
 
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")
@@ -775,12 +878,15 @@ def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray
     return vertices
 
 
-def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras) -> dict:
+def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras,
+                  fit_to_data_mm: np.ndarray, reinitialised: np.ndarray) -> dict:
     """The SESSION_FORMAT.md files, kept in OUT/body/ and shown at OUT/ until the `global` stage
-    replaces them; frames without a fit are NaN."""
+    replaces them; frames without a fit are NaN. body_params.npz also holds the per-frame
+    `reprojection_px`, `fit_to_data_mm` and `reinitialised`."""
     T = session.num_frames
     stage_dir = out_dir / "body"
-    save_body_results(stage_dir, model, fitted, valid, session.frame_ids, reprojection_px=reproj.astype(np.float32))
+    save_body_results(stage_dir, model, fitted, valid, session.frame_ids, reprojection_px=reproj.astype(np.float32),
+                      fit_to_data_mm=fit_to_data_mm, reinitialised=reinitialised)
     for name in PER_FRAME_FILES:
         publish(stage_dir / name, out_dir / name)
     for i in range(0, T, max(1, bcfg.overlay_every)):
@@ -791,5 +897,8 @@ def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, ou
         "frames_fitted": int(valid.sum()),
         "frames_unusable": int((~valid).sum()),
         "reprojection_px_median": float(np.nanmedian(reproj)) if valid.any() else None,
+        "fit_to_data_mm_median": float(np.nanmedian(fit_to_data_mm)) if np.isfinite(fit_to_data_mm).any() else None,
+        "fit_to_data_mm_max": float(np.nanmax(fit_to_data_mm)) if np.isfinite(fit_to_data_mm).any() else None,
+        "frames_reinitialised": int(reinitialised.sum()),
         "seconds_per_frame": float(seconds.mean()),
     }

@@ -42,7 +42,7 @@ FLOOR_TILE = 0.5
 class SynthConfig:
     """Everything that defines a synthetic session (defaults: a full-size session)."""
 
-    script: str = "pick_place"  # pick_place | lift_drink | push_chair | toss | hold | drop (the last three: physics)
+    script: str = "pick_place"  # pick_place | lift_drink | push_chair | toss | hold | drop (physics) | turn
     object: str | None = None  # box | cup | chair | block; default: the script's own
     frames: int | None = None  # None: the whole script at its natural speed; else resampled to this many
     fps: float = 30.0
@@ -786,10 +786,12 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     """Add the generator's options (and the OUT argument) to `parser` (a new one if None)."""
     if parser is None:
         parser = argparse.ArgumentParser(prog="python -m intercap.synth", description=__doc__.split("\n\n")[0])
+    from intercap.synth.motions import SCRIPT_NAMES
+
     d = SynthConfig()
     parser.add_argument("out", metavar="OUT", help="session folder to write")
     parser.add_argument("--preset", choices=sorted(PRESETS), help="a named set of defaults (sample: the committed sample session)")
-    parser.add_argument("--script", choices=["pick_place", "lift_drink", "push_chair", "toss", "hold", "drop"],
+    parser.add_argument("--script", choices=list(SCRIPT_NAMES),
                         default=None, help="toss, hold, drop: known physics (ground_truth/physics.npz)")
     parser.add_argument("--object", choices=["box", "cup", "chair", "block"], default=None,
                         help="default: the script's object")

@@ -38,7 +38,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from intercap.synth.objects import ObjectSpec, SdfGrid, SurfaceDistance
 
-SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop")
+SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop", "turn")
 PHYSICS_SCRIPTS = ("toss", "hold", "drop")  # scripts with analytic physics (ground_truth/physics.npz)
 GRAVITY = 9.81  # m/s^2 along the generator's up (+z)
 
@@ -269,9 +269,21 @@ def drop() -> Script:
                   flight=("drop", 0.6))
 
 
+def turn() -> Script:
+    """Turn round once on the spot holding a box in both hands: every camera sees the front, a side
+    and the back in turn (the case where keypoints become ambiguous and a warm start goes wrong)."""
+    phases = {"hold": (0.0, 6.05)}
+    carry = _hold(elbow=1.3, forward=0.35)
+    held = _rel(0.0, 0.40, 0.95)
+    yaw = [(0.0, 0.0), (0.5, 0.0), (5.5, 2 * np.pi), (6.0, 2 * np.pi)]
+    return Script("turn", 6.0, phases, "box", ("left", "right"), [(0.0, carry)], [(0.0, 0.0)], yaw,
+                  [(0.0, 0.0)], [(0.0, 1.0)], [(0.0, 0.0)], [(0.0, 1.0)], [ObjectKey(0.0, "body", held)],
+                  contact=("hold", "hold"))
+
+
 def get_script(name: str) -> Script:
     scripts = {"pick_place": pick_place, "lift_drink": lift_drink, "push_chair": push_chair, "toss": toss,
-               "hold": hold, "drop": drop}
+               "hold": hold, "drop": drop, "turn": turn}
     if name not in scripts:
         raise ValueError(f"unknown script {name!r}; choose one of {SCRIPT_NAMES}")
     return scripts[name]()

@@ -249,3 +249,36 @@ def test_two_workers_fit_the_take_as_one_process_does(tmp_path):
         gt = np.load(session / "ground_truth" / "keypoints3d.npy")
         errors[workers] = 1000 * np.linalg.norm(np.load(out / "keypoints3d.npy")[:, :25] - gt[:, :25], axis=-1).mean()
     assert errors[2] < 30 and abs(errors[2] - errors[1]) < 3, errors
+
+
+def test_a_failed_fit_is_refitted_from_the_evidence(model, sample):
+    """A fit turned round and 0.4 m off (a warm start gone wrong) lies far from its depth points
+    (fit_to_data_mm); refitting from the evidence brings frames 0 and 2 back onto them."""
+    session = Session.load(sample)
+    cameras = Cameras.from_infos(session.cameras)
+    cfg = load_config().body
+    params, keypoints3d = truth(sample)
+    frames = [0, 2]
+    obs = observations(session, session.frame_ids[frames], cfg, cameras)
+    good = BodyParams.cat([params[0], params[2]])
+    wrong = good.clone()
+    with torch.no_grad():
+        centre = model(wrong).joints[:, 0]
+        up = torch.tensor([0.0, 0.0, 1.0]).expand(2, 3)  # the sample's world is z-up
+        body.turn_about(wrong, body.axis_angle_to_matrix(up * math.pi), centre)
+        wrong.transl += torch.tensor([0.4, 0.0, 0.0])
+        truth_gap = body.fit_to_data_mm(model(good).vertices, obs)
+        wrong_gap = body.fit_to_data_mm(model(wrong).vertices, obs)
+    assert (truth_gap < 15).all(), truth_gap  # the figure: the truth lies on its points
+    assert (wrong_gap > 3 * cfg.track_floor_mm).all(), wrong_gap
+    assert body.failure_limit(truth_gap, cfg.track_factor, cfg.track_floor_mm) == cfg.track_floor_mm
+    assert body.failure_limit(np.array([np.nan]), cfg.track_prior_factor) == np.inf  # no history: no verdict
+    fitter = body.BodyFitter(model, cameras, cfg)
+    template = body.upright_template(model, np.array([0.0, 0.0, 1.0]))
+    energy = body.frame_energy(fitter, fitter.final_terms(wrong, obs))
+    refitted, replaced = body.refit_from_evidence(fitter, obs, wrong, energy, np.ones(2, bool), template)
+    assert replaced.all()
+    with torch.no_grad():
+        assert (body.fit_to_data_mm(model(refitted).vertices, obs) < 20).all()
+        assert (body.frame_energy(fitter, fitter.final_terms(refitted, obs)) < energy).all()
+    assert (mpjpe_mm(model, refitted, keypoints3d[frames]) < 40).all()

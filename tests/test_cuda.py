@@ -175,3 +175,41 @@ def test_intercap_run_on_gpu_fits_the_sample(tmp_path):
     result = evaluate(out, session)
     assert result.metrics["body_surface_mm"] < 20.0, result.metrics  # the CPU run: 7.4 mm
     assert result.metrics["object_translation_mm"] < 20.0, result.metrics  # the CPU run: 2.0 mm
+
+
+def test_failed_fit_is_refitted_on_gpu(models, tmp_path):
+    """The body stage's tracking path (fit-to-data, four-heading refit, energy choice) runs on the GPU:
+    the sample's frame 0 turned round and 0.4 m off is brought back onto its depth points."""
+    from intercap.body_models import BodyParams
+    from intercap.config import BodyConfig
+    from intercap.geometry.cameras import Cameras
+    from intercap.session import Session
+    from intercap.stages import body
+
+    _, model = models
+    session = Session.load(SAMPLE_SESSION)
+    bcfg = BodyConfig()
+    ids = session.frame_ids[:1]
+    cameras = Cameras.from_infos(session.cameras, device=DEVICE)
+    kps = keypoints_of(session, tmp_path, ids, bcfg)
+    points, valid = body.PersonPoints(session, cameras, bcfg, tmp_path).batch(ids, kps)
+    obs = body.BodyObservations(ids, torch.from_numpy(kps).to(DEVICE), points.to(DEVICE), valid.to(DEVICE))
+    truth = BodyParams.from_numpy_dict(dict(np.load(SAMPLE_SESSION / "ground_truth" / "body_params.npz")))[0]
+    wrong = truth.to(DEVICE)
+    with torch.no_grad():
+        centre = model(wrong).joints[:, 0]
+        body.turn_about(wrong, body.axis_angle_to_matrix(torch.tensor([[0.0, 0.0, np.pi]], device=DEVICE)), centre)
+        wrong.transl += torch.tensor([0.4, 0.0, 0.0], device=DEVICE)
+    fitter = body.BodyFitter(model, cameras, bcfg)
+    energy = body.frame_energy(fitter, fitter.final_terms(wrong, obs))
+    template = body.upright_template(model, np.array([0.0, 0.0, 1.0]))
+    refitted, replaced = body.refit_from_evidence(fitter, obs, wrong, energy, np.ones(1, bool), template)
+    assert replaced.all() and refitted.transl.is_cuda
+    with torch.no_grad():
+        assert body.fit_to_data_mm(model(refitted).vertices, obs)[0] < 20
+
+
+def keypoints_of(session, out_dir, ids, bcfg) -> np.ndarray:
+    from intercap.stages.body import KeypointSource
+
+    return KeypointSource(session, out_dir).batch(ids, bcfg.min_keypoint_confidence)

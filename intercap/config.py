@@ -128,13 +128,13 @@ class BodyConfig:
     full_steps: int = 10  # + hands, with the depth term and self-penetration
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
-    # tracking: a frame whose person points lie far from its fit (median distance, mm), or whose pose
-    # the learned prior finds far less likely than recent frames' (contorted to reach the evidence), is
-    # refitted from the evidence (the upright template at four headings) instead of from the previous
-    # batch's pose; the fit of lowest energy is kept
+    # tracking: a frame whose person points lie far from its fit (median distance, mm), or, seen with
+    # keypoints by fewer than two views, whose pose the learned prior finds far less likely than recent
+    # frames' (contorted to reach the evidence), is refitted from the evidence (the upright template at
+    # four headings) instead of from the previous batch's pose; the fit of lowest energy is kept
     track_floor_mm: float = 40.0  # fit-to-data: never a failure below this
     track_factor: float = 2.5  # fit-to-data: a failure above this many times its running median
-    track_prior_factor: float = 1.5  # pose prior: a failure above this many times its running median
+    track_prior_factor: float = 1.5  # pose prior (frames < 2 keypoint views): a failure above this x its running median
     track_window: int = 30  # frames in those running medians
     overlay_every: int = 10
     seed: int = 0

@@ -224,10 +224,15 @@ class PersonPoints:
         return torch.from_numpy(points), torch.from_numpy(valid)
 
 
+def keypoint_views(keypoints: torch.Tensor, cfg) -> torch.Tensor:
+    """(B,) per frame, the views with >= min_body_keypoints confident body keypoints."""
+    return ((keypoints[:, :, :NUM_BODY, 2] > 0).sum(-1) >= cfg.min_body_keypoints).sum(-1)
+
+
 def usable_frames(keypoints: torch.Tensor, point_valid: torch.Tensor, cfg) -> torch.Tensor:
     """(B,) bool: enough evidence for a fit. Two views with >= min_body_keypoints confident body
     keypoints, or one such view plus one view's depth points; anything less is marked, not fitted."""
-    kp_views = ((keypoints[:, :, :NUM_BODY, 2] > 0).sum(-1) >= cfg.min_body_keypoints).sum(-1)  # (B,)
+    kp_views = keypoint_views(keypoints, cfg)  # (B,)
     depth_views = (point_valid.sum(-1) >= cfg.min_points).sum(-1)
     return (kp_views >= 2) | ((kp_views >= 1) & (depth_views >= 1))
 
@@ -821,8 +826,10 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
             with torch.no_grad():
                 sub_gap = fit_to_data_mm(model(params).vertices, sub)
             recent = slice(max(0, batch[0] - bcfg.track_window), batch[0])
+            one_view = keypoint_views(sub.keypoints, bcfg).cpu().numpy() < 2  # no triangulation to fix the heading
             failed = ((sub_gap > failure_limit(gap[recent], bcfg.track_factor, bcfg.track_floor_mm))
-                      | (stats["terms"]["pose_prior"] > failure_limit(prior[recent], bcfg.track_prior_factor)))
+                      | (one_view & (stats["terms"]["pose_prior"]
+                                     > failure_limit(prior[recent], bcfg.track_prior_factor))))
             if failed.any():  # off the points, or contorted to reach them: refit those frames from the evidence
                 params, replaced = refit_from_evidence(fitter, sub, params, frame_energy(fitter, stats["terms"]), failed,
                                                        upright)

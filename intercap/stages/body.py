@@ -34,6 +34,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
 from intercap.body_models import BodyParams, load_from_config
 from intercap.body_models.base import axis_angle_to_matrix, matrix_to_axis_angle
@@ -617,13 +618,14 @@ def fit_to_data_mm(vertices: torch.Tensor, obs: BodyObservations) -> np.ndarray:
     """(B,) per frame, the median distance (mm) from its segmented person points to the nearest vertex
     of its fitted mesh (all vertices: a few mm above the distance to the surface at anny's vertex
     spacing); NaN without points. The body's fit-to-data figure: a fit far from its own depth points
-    has failed, whatever its reprojection. Median: mask edges carry mixed-depth outliers."""
-    out = np.full(vertices.shape[0], np.nan)
-    with torch.no_grad():
-        for b in range(vertices.shape[0]):  # one frame at a time: points x vertices distances are large
-            points = obs.points[b][obs.point_valid[b]]
-            if len(points):
-                out[b] = 1000 * float(torch.cdist(points.to(vertices), vertices[b]).amin(1).median())
+    has failed, whatever its reprojection. Median: mask edges carry mixed-depth outliers. A k-d tree
+    per frame: ~8x cheaper than all point-vertex distances, in the body stage's hot path."""
+    vertices = vertices.detach().cpu().numpy()
+    points, valid = obs.points.cpu().numpy(), obs.point_valid.cpu().numpy()
+    out = np.full(len(vertices), np.nan)
+    for b in range(len(vertices)):
+        if valid[b].any():
+            out[b] = 1000 * float(np.median(cKDTree(vertices[b]).query(points[b][valid[b]])[0]))
     return out
 
 
@@ -820,7 +822,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         usable = usable_frames(obs.keypoints, obs.point_valid, bcfg).cpu().numpy()
         if usable.any():
             keep = np.flatnonzero(usable)
-            sub = BodyObservations(ids[keep], obs.keypoints[keep], obs.points[keep], obs.point_valid[keep])
+            sub = obs.select(keep)
             init = fitter.initialise(sub, template)
             params, stats = fitter.fit(sub, init)
             with torch.no_grad():

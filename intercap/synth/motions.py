@@ -117,10 +117,11 @@ ARMS_RELAXED = {"upperarm01.L": (0.0, 0.55, 0.0), "upperarm01.R": (0.0, -0.55, 0
 
 
 def _stoop(depth: float, arms_forward: float = 1.0) -> dict:
-    """Bend down to reach low: knees and hips flex, spine rounds, arms go forward."""
+    """Bend down to reach low (with a pelvis pitch of ~0.55 d): knees and hips flex, spine rounds,
+    arms go forward; the soles stay flat (flat_feet)."""
     d = depth
     pose = {
-        "upperleg01.L": (-1.05 * d, 0.0, 0.0), "upperleg01.R": (-1.05 * d, 0.0, 0.0),
+        "upperleg01.L": (-0.5 * d, 0.0, 0.0), "upperleg01.R": (-0.5 * d, 0.0, 0.0),  # from the vertical
         "lowerleg01.L": (1.25 * d, 0.0, 0.0), "lowerleg01.R": (1.25 * d, 0.0, 0.0),
         "foot.L": (-0.45 * d, 0.0, 0.0), "foot.R": (-0.45 * d, 0.0, 0.0),
         "spine04": (0.18 * d, 0.0, 0.0), "spine03": (0.18 * d, 0.0, 0.0), "spine02": (0.12 * d, 0.0, 0.0),
@@ -153,8 +154,8 @@ def pick_place() -> Script:
     pitch_keys = [(0.0, 0.0), (1.8, 0.0), (2.7, 0.55), (3.0, 0.55), (3.8, 0.05), (5.0, 0.05), (5.8, 0.55),
                   (6.1, 0.55), (6.9, 0.0)]
     yaw_keys = [(0.0, 0.0), (3.9, 0.0), (4.9, np.pi / 2)]
-    walk_keys = [(0.0, 0.0), (0.3, 1.0), (1.3, 1.0), (1.8, 0.0), (3.8, 0.0), (4.0, 0.45), (4.7, 0.45),
-                 (5.0, 0.0), (6.3, 0.0), (6.5, -0.55), (7.0, -0.55), (7.2, 0.0)]
+    walk_keys = [(0.0, 0.0), (0.5, 1.0), (1.3, 1.0), (1.8, 0.0), (3.8, 0.0), (4.1, 0.45), (4.7, 0.45),
+                 (5.0, 0.0), (6.1, 0.0), (6.5, -0.55), (6.8, -0.55), (7.2, 0.0)]
     reach_keys = [(0.0, 0.0), (2.0, 0.0), (2.6, 1.0), (6.1, 1.0), (6.6, 0.0)]
     gap_keys = [(0.0, 0.12), (2.0, 0.12), (2.7, 0.0), (5.8, 0.0), (6.3, 0.12)]
     close_keys = [(0.0, 0.0), (2.7, 0.0), (3.0, 1.0), (5.8, 1.0), (6.0, 0.0)]
@@ -215,8 +216,8 @@ def push_chair() -> Script:
     pose_keys = [(0.0, ARMS_RELAXED), (0.4, ARMS_RELAXED), (1.2, lean), (4.2, lean), (5.0, ARMS_RELAXED)]
     pitch_keys = [(0.0, 0.0), (0.4, 0.0), (1.2, 0.15), (4.2, 0.15), (5.0, 0.0)]
     yaw_keys = [(0.0, 0.0), (2.2, 0.0), (3.4, 0.35)]
-    walk_keys = [(0.0, 0.0), (1.5, 0.0), (1.9, 0.7), (3.5, 0.7), (3.9, 0.0), (4.3, 0.0), (4.5, -0.55),
-                 (5.1, -0.55), (5.4, 0.0)]
+    walk_keys = [(0.0, 0.0), (1.5, 0.0), (1.9, 0.7), (3.5, 0.7), (3.9, 0.0), (4.2, 0.0), (4.6, -0.55),
+                 (5.0, -0.55), (5.4, 0.0)]
     reach_keys = [(0.0, 0.0), (0.5, 0.0), (1.1, 1.0), (4.2, 1.0), (4.7, 0.0)]
     gap_keys = [(0.0, 0.10), (0.5, 0.10), (1.2, 0.0), (3.9, 0.0), (4.4, 0.10)]
     close_keys = [(0.0, 0.0), (1.2, 0.0), (1.5, 1.0), (3.9, 1.0), (4.1, 0.0)]
@@ -374,31 +375,73 @@ def posture_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarr
     return eased_rotations(key_times, keys, times)
 
 
-def gait_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray, cadence_hz: float = 0.9):
+def leg_cycle(u: np.ndarray, stance: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Thigh swing (+1 forward .. -1 back) and swing lift (0..1) at leg phase u (cycles).
+
+    In stance (u mod 1 < `stance`) the thigh sweeps back linearly, so the foot moves
+    back under the hip at a near-constant speed and the body, anchored on that foot,
+    walks at a near-constant speed (a sine sweep would stop it at every step). The
+    swing returns the thigh by a cubic whose end slopes match the stance sweep, and
+    the two legs, half a cycle apart, meet the floor at the same angle."""
+    u = np.mod(u, 1.0)
+    x = np.clip((u - stance) / (1.0 - stance), 0.0, 1.0)  # swing progress
+    slope = -2.0 * (1.0 - stance) / stance  # the stance sweep's slope in swing units
+    h00, h10, h01, h11 = 2 * x**3 - 3 * x**2 + 1, x**3 - 2 * x**2 + x, -2 * x**3 + 3 * x**2, x**3 - x**2
+    swing = -h00 + slope * h10 + h01 + slope * h11
+    thigh = np.where(u < stance, 1.0 - 2.0 * u / stance, swing)
+    lift = np.where(u < stance, 0.0, np.sin(np.pi * x) ** 1.5)
+    return thigh, lift
+
+
+def gait_cycles(script: Script, times: np.ndarray, cadence_hz: float = 0.9) -> tuple[np.ndarray, np.ndarray]:
+    """(T,) gait cycles walked by `times` (the phase advances with the signed intensity, backwards
+    when negative) and (T,) the gait amplitude (the intensity's magnitude)."""
+    fine = np.linspace(0.0, max(float(times.max()), 1e-3), 2000)  # integrate the phase finely, whatever the frame rate
+    cycles_fine = cadence_hz * np.concatenate(
+        [[0.0], np.cumsum(eased_scalar(script.walk_keys, fine)[1:] * np.diff(fine))])
+    return np.interp(times, fine, cycles_fine), np.abs(eased_scalar(script.walk_keys, times))
+
+
+def left_stance_weight(script: Script, times: np.ndarray, stance: float = 0.5) -> np.ndarray:
+    """(T,) share of the weight on the left foot: its stance phase of the gait cycle while
+    walking, both feet alike while standing (amplitude below 5 %)."""
+    cycles, amp = gait_cycles(script, times)
+    on_left = (np.mod(cycles + 0.25, 1.0) < stance).astype(float)  # the left leg's phase (gait_rotvecs)
+    return 0.5 + (on_left - 0.5) * np.clip(amp / 0.05, 0.0, 1.0)
+
+
+def gait_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray):
     """(T, Jb, 3) walk-cycle rotations to compose with the posture.
 
     The gait phase advances with the signed intensity (backwards when negative),
-    the amplitude follows its magnitude: thighs swing +-0.38 rad, the knee flexes
-    in swing, the ankle lifts the toes, arms counter-swing, the pelvis rotates."""
-    intensity = eased_scalar(script.walk_keys, times)  # (T,)
-    fine = np.linspace(0.0, max(float(times.max()), 1e-3), 2000)  # integrate the phase finely, whatever the frame rate
-    phase_fine = 2 * np.pi * cadence_hz * np.concatenate(
-        [[0.0], np.cumsum(eased_scalar(script.walk_keys, fine)[1:] * np.diff(fine))])
-    phase = np.interp(times, fine, phase_fine)
-    amp = np.abs(intensity)
+    the amplitude follows its magnitude: thighs sweep +-0.38 rad (leg_cycle), the
+    knee flexes in swing, arms counter-swing, the pelvis rotates. Also returns each
+    side's swing lift (T,) for flat_feet."""
+    cycles, amp = gait_cycles(script, times)
     index = {n: i for i, n in enumerate(body_joint_names)}
     out = np.zeros((len(times), len(body_joint_names), 3))
-    for side, sign in (("L", 1.0), ("R", -1.0)):
-        s = np.sin(phase) * sign  # > 0: this thigh is forward
-        c = np.cos(phase) * sign  # > 0: this leg swings forward (swing phase) when walking forward
-        swing = np.maximum(0.0, c)  # swing phase (forwards and backwards walking alike)
-        out[:, index[f"upperleg01.{side}"], 0] = -0.38 * amp * s
-        out[:, index[f"lowerleg01.{side}"], 0] = amp * (0.08 + 0.85 * swing**1.5)
-        out[:, index[f"foot.{side}"], 0] = -amp * 0.25 * swing
-        out[:, index[f"upperarm01.{side}"], 0] = 0.3 * amp * s
+    lifts = {}
+    for side, offset in (("L", 0.25), ("R", 0.75)):  # start mid-stride, thighs together
+        thigh, lift = leg_cycle(cycles + offset)
+        out[:, index[f"upperleg01.{side}"], 0] = -0.38 * amp * thigh
+        out[:, index[f"lowerleg01.{side}"], 0] = amp * (0.08 + 0.85 * lift)
+        lifts[side] = amp * lift
+        out[:, index[f"upperarm01.{side}"], 0] = 0.3 * amp * np.cos(2 * np.pi * (cycles + offset))
         out[:, index[f"lowerarm01.{side}"], 0] = -0.15 * amp
-    out[:, index["spine04"], 2] = 0.06 * amp * np.sin(phase)
-    return out
+    out[:, index["spine04"], 2] = 0.06 * amp * np.cos(2 * np.pi * (cycles + 0.25))
+    return out, lifts
+
+
+def flat_feet(pose: np.ndarray, body_joint_names: list[str], pitch: np.ndarray, lifts: dict) -> np.ndarray:
+    """The ankles set so each sole lies flat on the floor when its foot is down (pelvis pitch, hip and
+    knee flexion undone; the leg bones turn about their x axes), the toes lifted by up to 0.25 rad in
+    swing (lifts: side -> (T,) swing lift 0..1). pose (T, Jb, 3) axis-angles, changed in place."""
+    index = {n: i for i, n in enumerate(body_joint_names)}
+    for side, lift in lifts.items():
+        leg = pitch + pose[:, index[f"upperleg01.{side}"], 0] + pose[:, index[f"lowerleg01.{side}"], 0]
+        pose[:, index[f"foot.{side}"]] = 0.0
+        pose[:, index[f"foot.{side}"], 0] = -leg * (1.0 - lift) - 0.25 * lift
+    return pose
 
 
 def compose_rotvecs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -433,16 +476,15 @@ def body_orientation(model, heading: np.ndarray, pitch: np.ndarray) -> np.ndarra
     return heading[:, :3, :3] @ model_to_heading(model)[None] @ R_pitch
 
 
-def stance_anchored_root(feet_l: np.ndarray, feet_r: np.ndarray) -> np.ndarray:
+def stance_anchored_root(feet_l: np.ndarray, feet_r: np.ndarray, w_left: np.ndarray) -> np.ndarray:
     """(T, 2) root xy that keeps the supporting foot still.
 
-    feet_l/r (T, 3): sole centres relative to the root, in world orientation.
-    The lower foot carries the weight (soft switch over ~1 cm); the root moves
-    opposite to that foot's motion relative to the root."""
-    w_l = 1.0 / (1.0 + np.exp(np.clip((feet_l[:, 2] - feet_r[:, 2]) / 0.004, -50, 50)))  # (T,)
+    feet_l/r (T, 3): sole centres relative to the root, in world orientation;
+    w_left (T,): the left foot's share of the support. The root moves opposite
+    to the supporting feet's motion relative to the root."""
     d_l = np.diff(feet_l[:, :2], axis=0)
     d_r = np.diff(feet_r[:, :2], axis=0)
-    w = 0.5 * (w_l[1:] + w_l[:-1])[:, None]
+    w = 0.5 * (w_left[1:] + w_left[:-1])[:, None]
     step = -(w * d_l + (1 - w) * d_r)
     return np.concatenate([np.zeros((1, 2)), np.cumsum(step, axis=0)])
 
@@ -873,7 +915,18 @@ def scripted_pose(model, script: Script, times: np.ndarray, shape: torch.Tensor,
     params = model.init_params(len(times))
     params.shape[:] = shape
     names = model.body_joint_names
-    pose = compose_rotvecs(posture_rotvecs(script, names, times), gait_rotvecs(script, names, times))
+    pitch = eased_scalar(script.pitch_keys, times)
+    gait, lifts = gait_rotvecs(script, names, times)
+    posture = posture_rotvecs(script, names, times)
+    # thigh angles are measured from the vertical, whatever the pelvis pitch (a forward lean flexes
+    # the hips); while walking the legs follow the gait, sweeping about the vertical (else one foot
+    # lands early and the stance switch jerks the body); standing, the posture
+    walking = np.clip(gait_cycles(script, times)[1] / 0.3, 0.0, 1.0)
+    for side in ("L", "R"):
+        for bone in (f"upperleg01.{side}", f"lowerleg01.{side}"):
+            posture[:, names.index(bone)] *= (1.0 - walking)[:, None]
+        posture[:, names.index(f"upperleg01.{side}"), 0] -= pitch
+    pose = flat_feet(compose_rotvecs(posture, gait), names, pitch, lifts)
     params.body_pose = torch.as_tensor(pose, dtype=params.body_pose.dtype)
     for side in ("L", "R"):
         model.curl_fingers(params, side, relaxed_curl)
@@ -895,7 +948,7 @@ def root_path(model, script: Script, times: np.ndarray, shape: torch.Tensor, hea
     for side in ("left", "right"):
         ids = model.contact_regions[f"{side}_foot"].cpu().numpy()
         feet[side] = np.einsum("tij,tj->ti", R, v_model[:, ids].mean(1))
-    xy = stance_anchored_root(feet["left"], feet["right"])
+    xy = stance_anchored_root(feet["left"], feet["right"], left_stance_weight(script, fine))
     return np.stack([np.interp(times, fine, xy[:, k]) for k in range(2)], 1)
 
 

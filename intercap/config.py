@@ -120,6 +120,7 @@ class BodyConfig:
     w_bending: float = 1.0e3
     w_hand_prior: float = 1.0e3
     w_shape: float = 100.0
+    size_from_depth: bool = True  # template's stature from the 3D torso keypoints (children, tall people; one view)
     w_expression: float = 10.0
     w_penetration: float = 1.0e5
     fit_expression: bool = False  # anny has no face landmarks in our keypoint set: expression stays neutral

@@ -719,11 +719,12 @@ def learned_pose_prior(body_pose: torch.Tensor) -> torch.Tensor:
 # Shape and expression
 # ---------------------------------------------------------------------------
 
-def shape_prior(shape: torch.Tensor, center_weight: float = 0.1) -> torch.Tensor:
+def shape_prior(shape: torch.Tensor, center_weight: float = 0.1, center: torch.Tensor | float = 0.5) -> torch.Tensor:
     """(B, S) anny phenotype in [0, 1] -> (B,) squared hinge for leaving [0, 1],
-    plus `center_weight` * |shape - 0.5|^2 (a light pull to the average person)."""
+    plus `center_weight` * |shape - center|^2 (a light pull to the average person, or to the
+    phenotype the person's measured size suggests: `center` (S,))."""
     box = squared_hinge(shape, shape.new_zeros(()), shape.new_ones(())).sum(1)
-    return box + center_weight * ((shape - 0.5) ** 2).sum(1)
+    return box + center_weight * ((shape - center) ** 2).sum(1)
 
 
 def expression_prior(expression: torch.Tensor, box_weight: float = 10.0) -> torch.Tensor:

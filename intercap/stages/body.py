@@ -455,6 +455,45 @@ class BodyFitter:
         self.orient_weights = orient
         self.subset = model.fitting_subsample.to(cameras.K.device)
         self.spheres = BodySpheres.from_model(model)
+        self.shape_center = 0.5  # the shape prior's centre: the average person until `size_template`
+
+    # -- size ---------------------------------------------------------------------------
+    def torso_keypoints_3d(self, obs: BodyObservations) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B, 6, 3) torso keypoints in the world, triangulated where two views see them, else lifted
+        from depth (`lift_keypoints`), and (B, 6) which of them are known."""
+        target, seen = triangulate(obs.keypoints, self.cameras)
+        lifted, liftable = lift_keypoints(obs.keypoints, obs.points, obs.point_valid, self.cameras)
+        target = torch.where(seen[..., None], target, lifted)  # one view: depth gives the 3D position
+        return target[:, TORSO_KEYPOINTS], (seen | liftable)[:, TORSO_KEYPOINTS]
+
+    def size_template(self, obs: BodyObservations, template: BodyParams,
+                      tolerance: float = 0.08) -> tuple[BodyParams, float | None]:
+        """The template with the phenotype whose stature matches the person's measured size.
+
+        Depth (or triangulation) gives the torso keypoints in metres, so their spread against the
+        template's (median ratio of the pairwise distances) scales the stature: a child seen by one
+        camera is otherwise fitted as an adult further away, which reprojects as well. Sizes within
+        `tolerance` of the template's are left to the fit; otherwise below 1.5 m the age changes
+        (children), above it the height, and the shape prior is centred there.
+        Returns (template, measured stature ratio or None when too few keypoints)."""
+        target, seen = self.torso_keypoints_3d(obs)
+        with torch.no_grad():
+            placed = self.model(template).keypoints[0, TORSO_KEYPOINTS]  # (6, 3)
+        i, j = torch.triu_indices(len(TORSO_KEYPOINTS), len(TORSO_KEYPOINTS), 1, device=placed.device)
+        model_len = (placed[i] - placed[j]).norm(dim=-1)  # (pairs,)
+        both = seen[:, i] & seen[:, j]  # (B, pairs)
+        ratio = (target[:, i] - target[:, j]).norm(dim=-1) / model_len.clamp(min=1e-6)
+        ratio = ratio[both & (model_len > 0.1)]
+        if ratio.numel() < 3:
+            return template, None
+        scale = float(ratio.median())
+        if abs(scale - 1.0) < tolerance:  # within what the keypoints' depth lifting and joint placement blur
+            return template, scale
+        shape = phenotype_for_stature(self.model, template.shape[0], scale * stature(self.model, template.shape))
+        sized = template.clone()
+        sized.shape[:] = shape
+        self.shape_center = shape.clone()
+        return sized, scale
 
     # -- initialisation -------------------------------------------------------------
     def initialise(self, obs: BodyObservations, template: BodyParams) -> BodyParams:
@@ -468,11 +507,7 @@ class BodyFitter:
         with none at all are moved to their depth points' centroid."""
         B = obs.batch_size
         params = template.map(lambda t: t[-1:].expand(B, *t.shape[1:]).clone())
-        target, seen = triangulate(obs.keypoints, self.cameras)
-        lifted, liftable = lift_keypoints(obs.keypoints, obs.points, obs.point_valid, self.cameras)
-        target = torch.where(seen[..., None], target, lifted)  # one view: depth gives the 3D position
-        seen = seen | liftable
-        target, seen = target[:, TORSO_KEYPOINTS], seen[:, TORSO_KEYPOINTS]
+        target, seen = self.torso_keypoints_3d(obs)
         with torch.no_grad():
             placed = self.model(params).keypoints[:, TORSO_KEYPOINTS]  # (B, 6, 3) template as placed
         w = seen.to(placed.dtype)
@@ -530,7 +565,7 @@ class BodyFitter:
             result["hand_prior"] = (priors.hand_pose_prior(params.left_hand_pose, "L")
                                + priors.hand_pose_prior(params.right_hand_pose, "R"))
         if "shape" in terms:
-            result["shape"] = priors.shape_prior(params.shape)
+            result["shape"] = priors.shape_prior(params.shape, center=self.shape_center)
         if "expression" in terms and self.cfg.fit_expression:
             result["expression"] = priors.expression_prior(params.expression)
         if "penetration" in terms:
@@ -726,6 +761,33 @@ def world_up(session, out_dir: Path) -> np.ndarray:
     return up_hint_from_cameras(np.stack([c.T_world_from_cam for c in session.cameras]))
 
 
+def stature(model, shape: torch.Tensor) -> torch.Tensor:
+    """(B,) standing height (m) of phenotypes (B, S): the rest mesh's extent along the model's up."""
+    params = model.init_params(len(shape))
+    params.shape[:] = shape
+    with torch.no_grad():
+        vertices = model(params).vertices
+    up = torch.as_tensor(model.up_axis, dtype=vertices.dtype, device=vertices.device)
+    height = vertices @ up
+    return height.max(1).values - height.min(1).values
+
+
+def phenotype_for_stature(model, base: torch.Tensor, target_m: torch.Tensor | float, adult_min_m: float = 1.5,
+                          steps: int = 41) -> torch.Tensor:
+    """(S,) the phenotype `base` with its age (below `adult_min_m`: children) or its height (above)
+    changed so the stature is `target_m`: the nearest of `steps` values on each path."""
+    AGE, HEIGHT = 1, 4  # anny: gender, age, muscle, weight, height, proportions
+    target = float(target_m)
+    grid = torch.linspace(0.0, 1.0, steps, dtype=base.dtype, device=base.device)
+    if target < adult_min_m:  # children and teenagers: age from newborn to the base's
+        candidates = base.expand(steps, -1).clone()
+        candidates[:, AGE] = grid * float(base[AGE])
+    else:
+        candidates = base.expand(steps, -1).clone()
+        candidates[:, HEIGHT] = grid
+    return candidates[(stature(model, candidates) - target).abs().argmin()]
+
+
 def upright_template(model, up: np.ndarray) -> BodyParams:
     """The model's default parameters for one frame, turned so the model's up axis is the world's
     `up` (the shortest rotation; the heading is found per frame by `BodyFitter.initialise`)."""
@@ -812,6 +874,10 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         if done[batch].all():
             if valid[batch].any():
                 template = fitted[int(batch[valid[batch]][-1])]
+                if bcfg.size_from_depth and isinstance(fitter.shape_center, float):  # resumed: sized as before
+                    upright = upright.clone()
+                    upright.shape[:] = template.shape
+                    fitter.shape_center = template.shape[0].clone()
             continue
         start = time.perf_counter()
         ids = frame_ids[batch]
@@ -823,6 +889,13 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         if usable.any():
             keep = np.flatnonzero(usable)
             sub = obs.select(keep)
+            if template is upright and bcfg.size_from_depth and isinstance(fitter.shape_center, float):
+                # nothing fitted yet: the person's size first
+                upright, scale = fitter.size_template(sub, upright)
+                template = upright
+                if scale is not None:
+                    log.info("body: measured size %.2f x the template's: starting from a stature of %.2f m",
+                             scale, float(stature(model, upright.shape)))
             init = fitter.initialise(sub, template)
             params, stats = fitter.fit(sub, init)
             with torch.no_grad():

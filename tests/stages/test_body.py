@@ -282,3 +282,24 @@ def test_a_failed_fit_is_refitted_from_the_evidence(model, sample):
         assert (body.fit_to_data_mm(model(refitted).vertices, obs) < 20).all()
         assert (body.frame_energy(fitter, fitter.final_terms(refitted, obs)) < energy).all()
     assert (mpjpe_mm(model, refitted, keypoints3d[frames]) < 40).all()
+
+
+def test_a_child_seen_by_one_camera_is_fitted_at_its_size(tmp_path, model):
+    """One view of a standing child (1.1 m): 2D keypoints alone fit an adult further away just as
+    well; the torso measured in depth sizes the template (issue 11.2), so the fit lies on the child's
+    points at the child's stature."""
+    from intercap.synth.generator import SynthConfig, generate_session
+
+    child = (0.5, 0.2, 0.5, 0.5, 0.5, 0.5)  # anny phenotype: age 0.2
+    session = generate_session(SynthConfig(script="hold", cameras=1, frames=3, fps=15.0, width=192, height=176,
+                                           phenotype=child, ik_iters=25, quiet=True), tmp_path / "child")
+    out = tmp_path / "out"
+    cfg = load_config(overrides=["run.workers=1", "report.enabled=false"])
+    run_pipeline(session, out, cfg, stages=["body"], progress=False)
+    fitted = np.load(out / "body_params.npz")
+    assert np.median(fitted["fit_to_data_mm"]) < 25, fitted["fit_to_data_mm"]
+    true_height = float(body.stature(model, torch.tensor([child], dtype=torch.float32)))
+    fitted_height = float(body.stature(model, torch.from_numpy(fitted["shape_mean"][None]).float()))
+    assert abs(fitted_height - true_height) < 0.08 * true_height, (fitted_height, true_height)
+    gt = np.load(session / "ground_truth" / "keypoints3d.npy")[:, :25]
+    assert 1000 * np.linalg.norm(np.load(out / "keypoints3d.npy")[:, :25] - gt, axis=-1).mean() < 60

@@ -858,26 +858,28 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     gap = np.full(T, np.nan)  # fit-to-data, mm
     prior = np.full(T, np.nan)  # the learned pose prior's energy of each frame's fit
     reinitialised = np.zeros(T, bool)
+    sized = None  # the template's phenotype from the person's measured size (NaN: the template's own kept)
     if checkpoint.exists():
         saved = np.load(checkpoint)
         fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype, device=model.faces.device)
         done, valid, reproj, seconds = saved["done"], saved["valid"], saved["reprojection_px"], saved["seconds"]
         if "fit_to_data_mm" in saved:  # older checkpoints lack it
             gap, prior, reinitialised = saved["fit_to_data_mm"], saved["pose_prior"], saved["reinitialised"]
+        if "sized_shape" in saved:
+            sized = saved["sized_shape"]
         log.info("body: resuming frames %d-%d, %d of %d already fitted", chunk.lo, chunk.hi - 1, int(done.sum()), T)
         queue.put(int(done.sum()))
 
     upright = upright_template(model, world_up(session, out_dir))
+    if sized is not None and np.isfinite(sized).all():  # resumed: sized as before
+        upright.shape[:] = torch.as_tensor(sized, dtype=upright.shape.dtype, device=upright.shape.device)
+        fitter.shape_center = upright.shape[0].clone()
     template = upright  # the next batch starts from the last fit
     batches = [np.arange(s, min(s + bcfg.batch_frames, T)) for s in range(0, T, bcfg.batch_frames)]
     for batch in batches:
         if done[batch].all():
             if valid[batch].any():
                 template = fitted[int(batch[valid[batch]][-1])]
-                if bcfg.size_from_depth and isinstance(fitter.shape_center, float):  # resumed: sized as before
-                    upright = upright.clone()
-                    upright.shape[:] = template.shape
-                    fitter.shape_center = template.shape[0].clone()
             continue
         start = time.perf_counter()
         ids = frame_ids[batch]
@@ -889,11 +891,11 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         if usable.any():
             keep = np.flatnonzero(usable)
             sub = obs.select(keep)
-            if template is upright and bcfg.size_from_depth and isinstance(fitter.shape_center, float):
-                # nothing fitted yet: the person's size first
-                upright, scale = fitter.size_template(sub, upright)
-                template = upright
-                if scale is not None:
+            if sized is None and template is upright and bcfg.size_from_depth:  # nothing fitted yet: size first
+                resized, scale = fitter.size_template(sub, upright)
+                if scale is not None:  # measured (else tried again on the next batch)
+                    sized = np.full(model.num_shape, np.nan) if resized is upright else resized.shape[0].cpu().numpy()
+                    upright = template = resized
                     log.info("body: measured size %.2f x the template's: starting from a stature of %.2f m",
                              scale, float(stature(model, upright.shape)))
             init = fitter.initialise(sub, template)
@@ -926,7 +928,8 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         seconds[batch] = (time.perf_counter() - start) / len(batch)
         queue.put(len(batch))
         save_npz(checkpoint, **fitted.to_numpy_dict(), done=done, valid=valid, reprojection_px=reproj, seconds=seconds,
-                 fit_to_data_mm=gap, pose_prior=prior, reinitialised=reinitialised)
+                 fit_to_data_mm=gap, pose_prior=prior, reinitialised=reinitialised,
+                 **({} if sized is None else {"sized_shape": sized}))
     return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds,
             "fit_to_data_mm": gap, "reinitialised": reinitialised}
 

@@ -294,7 +294,7 @@ def test_a_child_seen_by_one_camera_is_fitted_at_its_size(tmp_path, model):
     session = generate_session(SynthConfig(script="hold", cameras=1, frames=3, fps=15.0, width=192, height=176,
                                            phenotype=child, ik_iters=25, quiet=True), tmp_path / "child")
     out = tmp_path / "out"
-    cfg = load_config(overrides=["run.workers=1", "report.enabled=false"])
+    cfg = load_config(overrides=["run.workers=1", "report.enabled=false", "body.batch_frames=2"])
     run_pipeline(session, out, cfg, stages=["body"], progress=False)
     fitted = np.load(out / "body_params.npz")
     assert np.median(fitted["fit_to_data_mm"]) < 25, fitted["fit_to_data_mm"]
@@ -302,4 +302,15 @@ def test_a_child_seen_by_one_camera_is_fitted_at_its_size(tmp_path, model):
     fitted_height = float(body.stature(model, torch.from_numpy(fitted["shape_mean"][None]).float()))
     assert abs(fitted_height - true_height) < 0.08 * true_height, (fitted_height, true_height)
     gt = np.load(session / "ground_truth" / "keypoints3d.npy")[:, :25]
-    assert 1000 * np.linalg.norm(np.load(out / "keypoints3d.npy")[:, :25] - gt, axis=-1).mean() < 60
+    keypoints = np.load(out / "keypoints3d.npy")
+    assert 1000 * np.linalg.norm(keypoints[:, :25] - gt, axis=-1).mean() < 60
+
+    # resumed after the first batch, the second starts from the same sized template (kept in the checkpoint)
+    checkpoint = out / "body" / f"progress_{0:06d}_{3:06d}.npz"
+    progress = dict(np.load(checkpoint))
+    assert np.isfinite(progress["sized_shape"]).all()
+    progress["done"][2:] = False
+    np.savez(checkpoint, **progress)
+    (out / "body" / "DONE.json").unlink()
+    run_pipeline(session, out, cfg, stages=["body"], progress=False)
+    assert np.allclose(np.load(out / "keypoints3d.npy"), keypoints, atol=1e-4)

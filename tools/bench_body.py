@@ -1,8 +1,9 @@
 """Benchmark of the `body` stage (per-frame whole-body fitting) against ground truth.
 
-Synthetic sessions with different phenotypes, both interaction scripts and 4 or
-6 views are generated, fitted with the `body` stage (session keypoints and
-person masks), and scored:
+Synthetic sessions with different phenotypes (a child too), scripts, 1, 4 or 6
+views, framings, outfits and lighting are generated, fitted with the `body` stage
+(session keypoints and person masks; `raw4` has neither: `detect` finds the
+keypoints, the body stage derives the masks), and scored:
   * body surface error (symmetric point-to-surface, mm; `intercap eval`'s),
   * MPJPE over BODY_25 (mm), hand keypoint error relative to the wrist (mm),
   * vertex-to-point-cloud distance: each view's segmented person points to the
@@ -28,13 +29,20 @@ from pathlib import Path
 
 import numpy as np
 
-# name: (script, object, phenotype gender,age,muscle,weight,height,proportions, cameras)
+# name: (script, object, phenotype gender,age,muscle,weight,height,proportions, cameras[, other SynthConfig fields])
 SESSIONS = {
     "pick4": ("pick_place", "box", (0.5, 0.5, 0.5, 0.5, 0.5, 0.5), 4),
     "drink4": ("lift_drink", "cup", (0.1, 0.3, 0.4, 0.7, 0.3, 0.6), 4),
     "pick6": ("pick_place", "box", (0.9, 0.7, 0.7, 0.3, 0.8, 0.4), 6),
     "drink6": ("lift_drink", "cup", (0.8, 0.2, 0.3, 0.5, 0.6, 0.5), 6),
     "turn1": ("turn", "box", (0.5, 0.5, 0.5, 0.5, 0.5, 0.5), 1),  # one view, the person turns round once
+    "child1": ("hold", "box", (0.5, 0.25, 0.5, 0.5, 0.5, 0.5), 1),  # one view of a child (1.23 m)
+    # one camera close in, upper body in view, turning round; another outfit
+    "upper1": ("turn", "box", (0.5, 0.5, 0.5, 0.5, 0.5, 0.5), 1,
+               dict(ring_radius=1.8, ring_height=1.45, look_at=(0.0, 0.0, 1.2), focal_scale=1.0, appearance=3)),
+    # raw RGB-D: no keypoint or mask files (detected and derived), another outfit, a dim room
+    "raw4": ("pick_place", "box", (0.5, 0.5, 0.5, 0.5, 0.5, 0.5), 4,
+             dict(keypoints=False, masks=False, appearance=5, light=0.6)),
 }
 
 
@@ -70,7 +78,7 @@ def fit_and_score(session: Path, out: Path, overrides: list[str]) -> dict:
 
     cfg = load_config(overrides=["run.force=true", *overrides])
     start = time.perf_counter()
-    metrics = run_pipeline(session, out, cfg, stages=["body"], progress=False)["body"]
+    metrics = run_pipeline(session, out, cfg, stages=["detect", "body"], progress=False)["body"]  # detect: where files lack
     seconds = time.perf_counter() - start
     result = evaluate(out, session).metrics
     frames = result["frames"]
@@ -99,11 +107,12 @@ def main(argv=None) -> None:
     rows = []
     try:
         for name in args.sessions.split(","):
-            script, obj, phenotype, cameras = SESSIONS[name]
+            script, obj, phenotype, cameras, *other = SESSIONS[name]
             session = work / f"{name}_{args.frames}_session"
             if not (session / "session.yaml").exists():
                 cfg = SynthConfig(script=script, object=obj, cameras=cameras, width=args.width, height=args.height,
-                                  frames=args.frames or None, fps=30.0, phenotype=phenotype, quiet=True)
+                                  frames=args.frames or None, fps=30.0, phenotype=phenotype, quiet=True,
+                                  **(other[0] if other else {}))
                 generate_session(cfg, session)
             rows.append((name, script, cameras, fit_and_score(session, work / f"{name}_{args.frames}_body", args.set)))
             print(f"{name} done", flush=True)

@@ -12,11 +12,13 @@ settings (`run_pipeline`, as `intercap run` does), and the bench prints:
     hands, object ADD(-S), penetration, contact).
 
     python -m tools.bench_pipeline [--frames 150] [--width 640 --height 576] [--cameras 4] [--fps 30]
-                                   [--keep DIR] [--set SECTION.KEY=VALUE ...] [--profile]
+                                   [--raw] [--keep DIR] [--set SECTION.KEY=VALUE ...] [--profile]
     python -m tools.bench_pipeline --session data_samples/sample [--set run.device=cuda]
 
 Quick check: `--frames 30 --width 320 --height 288` (30 frames resample the script: 7x faster
 motion than capture rate, so accuracy is not comparable with the full-size figures).
+Rows for real-capture cases: `--cameras 1` (one view), `--raw` (no keypoint or mask files: the
+pipeline detects and derives them).
 --keep DIR keeps (and reuses) the generated session there; the pipeline is always redone.
 --session DIR runs on an existing session with ground truth (the committed sample, a kept one)
 instead of generating one. With `--set run.device=cuda` the peak GPU memory is printed too.
@@ -146,6 +148,8 @@ def main(argv=None) -> None:
     parser.add_argument("--height", type=int, default=576)
     parser.add_argument("--cameras", type=int, default=4)
     parser.add_argument("--script", default="pick_place", help="pick_place | lift_drink | push_chair")
+    parser.add_argument("--raw", action="store_true",
+                        help="raw RGB-D: the session has no keypoint or mask files (detected and derived)")
     parser.add_argument("--session", type=Path, help="run on this session (with ground_truth/) instead of generating one")
     parser.add_argument("--keep", type=Path, help="keep (and reuse) the session and the results here")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
@@ -156,8 +160,11 @@ def main(argv=None) -> None:
 
     synth = {"script": args.script, "frames": args.frames or None, "fps": args.fps, "cameras": args.cameras,
              "width": args.width, "height": args.height, "quiet": True}
+    if args.raw:
+        synth.update(keypoints=False, masks=False)
     work = args.keep or Path(tempfile.mkdtemp(prefix="bench_pipeline_"))
-    tag = f"{args.script}_{args.frames or 'natural'}f_{args.fps:g}fps_{args.cameras}v_{args.width}x{args.height}"
+    tag = (f"{args.script}_{args.frames or 'natural'}f_{args.fps:g}fps_{args.cameras}v_{args.width}x{args.height}"
+           + ("_raw" if args.raw else ""))
     session, out = work / tag, work / f"{tag}_out"
     if args.session is not None:
         tag = args.session.resolve().name

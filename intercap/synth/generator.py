@@ -84,6 +84,9 @@ class SynthConfig:
     occlusion_margin_body: float = 0.10  # metres behind the visible surface => occluded
     occlusion_margin_hand: float = 0.04
     masks: bool = True
+    # appearance and lighting (real captures vary: skin tones, clothing, dim or bright rooms)
+    appearance: int = 0  # 0: the default outfit; N > 0: a skin tone, hair and clothing colours drawn with seed N
+    light: float = 1.0  # scale of the lights' intensities (0.4: a dim room; 1.6: a bright one)
     # dropped frames
     drop_rate: float = 0.0  # fraction of frames missing in one view
     drop_view: int = -1  # which camera (index) loses them
@@ -98,6 +101,9 @@ class SynthConfig:
 PRESETS = {
     # The committed sample: 4 cameras, 320x288, 30 frames, well under 15 MB.
     "sample": dict(cameras=4, width=320, height=288, frames=30, fps=5.0, color_format="jpg", jpeg_quality=88),
+    # One camera close in, the upper body in view (legs below the image), as at a desk or a close rig.
+    "upper1": dict(cameras=1, ring_radius=1.8, ring_height=1.45, look_at=(0.0, 0.0, 1.2), focal_scale=1.0,
+                   walls=True),
     # Tiny and fast (tests, smoke runs).
     "tiny": dict(cameras=2, width=96, height=80, frames=4, fps=5.0, ik_iters=25),
 }
@@ -221,10 +227,26 @@ BODY_COLOURS = {
     "skin": (224, 172, 140), "hair": (52, 36, 26), "shirt": (58, 128, 158),
     "pants": (72, 74, 98), "shoes": (112, 84, 62),
 }
+# drawn from by `outfit` (appearance > 0): skin tones from very light to very dark, hair, everyday clothes
+SKIN_TONES = [(246, 214, 190), (224, 172, 140), (198, 140, 100), (160, 106, 72), (112, 72, 48), (72, 46, 32)]
+HAIR_COLOURS = [(20, 16, 14), (52, 36, 26), (110, 72, 40), (196, 160, 100), (150, 150, 150)]
+CLOTHES = [(20, 20, 24), (240, 240, 236), (58, 128, 158), (150, 30, 36), (40, 60, 110), (90, 110, 60),
+           (200, 170, 60), (120, 120, 128), (72, 74, 98), (180, 100, 140)]
 
 
-def body_vertex_colours(model, rest_vertices: np.ndarray, seed: int) -> np.ndarray:
-    """(V, 4) uint8 per-vertex colours: skin, hair, a short-sleeved shirt, trousers, shoes."""
+def outfit(appearance: int) -> dict:
+    """Region colours (as BODY_COLOURS) of an appearance: 0 the default, N > 0 drawn with seed N
+    (shirt and trousers always differ)."""
+    if appearance == 0:
+        return dict(BODY_COLOURS)
+    rng = np.random.default_rng([appearance, 303])
+    shirt, pants = rng.choice(len(CLOTHES), 2, replace=False)
+    return {"skin": SKIN_TONES[rng.integers(len(SKIN_TONES))], "hair": HAIR_COLOURS[rng.integers(len(HAIR_COLOURS))],
+            "shirt": CLOTHES[shirt], "pants": CLOTHES[pants], "shoes": CLOTHES[rng.integers(len(CLOTHES))]}
+
+
+def body_vertex_colours(model, rest_vertices: np.ndarray, seed: int, appearance: int = 0) -> np.ndarray:
+    """(V, 4) uint8 per-vertex colours: skin, hair, a short-sleeved shirt, trousers, shoes (`outfit`)."""
     from intercap.synth.motions import dominant_bones
 
     names = np.array(model.joint_names)[dominant_bones(model)]
@@ -251,7 +273,8 @@ def body_vertex_colours(model, rest_vertices: np.ndarray, seed: int) -> np.ndarr
     head = starts("head", "neck03", "eye")
     behind = (rest_vertices - head_centre) @ fwd < -0.01
     region[head & ((height > eyes + 0.045) | ((height > eyes - 0.06) & behind))] = "hair"
-    colours = np.array([BODY_COLOURS[r] for r in region], dtype=np.float64)
+    palette = outfit(appearance)
+    colours = np.array([palette[r] for r in region], dtype=np.float64)
     jitter = np.random.default_rng([seed, 202]).normal(0, 5, (len(names), 1))
     rgb = np.clip(colours + jitter, 0, 255).astype(np.uint8)
     return np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
@@ -309,7 +332,7 @@ class SceneRenderer:
     SEG_OBJECT = (0, 255, 0)
 
     def __init__(self, cams: list[Camera], body_faces: np.ndarray, body_colours: np.ndarray, obj_mesh: trimesh.Trimesh,
-                 obj_colour, statics: list[trimesh.Trimesh]):
+                 obj_colour, statics: list[trimesh.Trimesh], light: float = 1.0):
         import pyrender
 
         self.pyrender = pyrender
@@ -322,11 +345,13 @@ class SceneRenderer:
         w = max(c.width for c in cams) + 2 * pad
         h = max(c.height for c in cams) + 2 * pad
         self.renderer = pyrender.OffscreenRenderer(w, h)
-        self.scene = pyrender.Scene(ambient_light=(0.38, 0.38, 0.38), bg_color=(0.0, 0.0, 0.0, 1.0))
+        if light <= 0:
+            raise ValueError(f"light must be positive, got {light}")
+        self.scene = pyrender.Scene(ambient_light=(0.38 * light,) * 3, bg_color=(0.0, 0.0, 0.0, 1.0))
         for pose, intensity in ((look_at_pose(np.array([2.0, -1.5, 4.0]), np.zeros(3)), 2.2),
                                 (look_at_pose(np.array([-3.0, 2.0, 3.0]), np.zeros(3)), 1.2)):
             # pyrender lights shine along their -z: turn the OpenCV look-at (+z forward) around
-            self.scene.add(pyrender.DirectionalLight(intensity=intensity), pose=pose @ np.diag([1, -1, -1, 1.0]))
+            self.scene.add(pyrender.DirectionalLight(intensity=intensity * light), pose=pose @ np.diag([1, -1, -1, 1.0]))
         self.static_nodes = [self.scene.add(pyrender.Mesh.from_trimesh(m, smooth=False)) for m in statics]
         obj = obj_mesh.copy()
         obj.visual.vertex_colors = np.array(tuple(obj_colour) + (255,), np.uint8)
@@ -696,7 +721,7 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     faces = model.faces.cpu().numpy()
     with torch.no_grad():
         rest_v = model(model.init_params(1)).vertices[0].numpy()
-    colours = body_vertex_colours(model, rest_v, cfg.seed)
+    colours = body_vertex_colours(model, rest_v, cfg.seed, cfg.appearance)
     statics = [floor_mesh()] + (wall_meshes(cfg.ring_radius + 1.3) if cfg.walls else [])
     for _, mesh, pose in anim.props:
         m = mesh.copy()
@@ -742,7 +767,7 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
 
     dropped = dropped_frames(cfg, T)
     drop_view = cfg.drop_view % len(cams)
-    renderer = SceneRenderer(cams, faces, colours, spec.mesh, spec.color, statics)
+    renderer = SceneRenderer(cams, faces, colours, spec.mesh, spec.color, statics, light=cfg.light)
     t_render = time.perf_counter()
     views_done = 0
     ext = "jpg" if cfg.color_format == "jpg" else "png"
@@ -815,6 +840,9 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     parser.add_argument("--no-keypoints", action="store_true", default=None)
     parser.add_argument("--no-masks", action="store_true", default=None)
     parser.add_argument("--kp-sigma", type=_floats, default=None, help="body,hand pixel noise at 640 px width")
+    parser.add_argument("--appearance", type=int, default=None,
+                        help="0: the default outfit; N > 0: skin tone, hair and clothes drawn with seed N")
+    parser.add_argument("--light", type=float, default=None, help="scale of the lights (0.4 dim, 1.6 bright)")
     parser.add_argument("--drop-rate", type=float, default=None, help="fraction of frames missing in one view")
     parser.add_argument("--drop-view", type=int, default=None)
     parser.add_argument("--annotate", action="store_true", default=None,
@@ -831,7 +859,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
     changes = {}
     simple = ["script", "object", "frames", "fps", "seed", "phenotype", "cameras", "width", "height", "focal_scale",
               "ring_radius", "ring_height", "look_at", "dist", "color_format", "clean_depth", "drop_rate", "drop_view",
-              "annotate", "ik_iters", "threads", "quiet"]
+              "annotate", "ik_iters", "threads", "quiet", "appearance", "light"]
     for name in simple:
         value = getattr(args, name, None)
         if value is not None:

@@ -299,3 +299,45 @@ def test_deterministic_npz_and_cli(tmp_path):
     cfg = config_from_args(args)
     assert (cfg.cameras, cfg.width, cfg.height, cfg.frames, cfg.seed) == (4, 320, 288, 30, 3)
     assert (cfg.depth_sigma_base, cfg.depth_sigma_quad) == (0.001, 0.002)
+
+
+# ----------------------------------------------------------------------------- variety (issue 11.8)
+def test_outfits_vary_skin_and_clothes_deterministically():
+    from intercap.synth.generator import BODY_COLOURS, SKIN_TONES, outfit
+
+    assert outfit(0) == BODY_COLOURS and outfit(7) == outfit(7)
+    looks = [outfit(n) for n in range(1, 31)]
+    assert len({look["skin"] for look in looks}) >= 4  # light to dark skin over a few seeds
+    assert all(look["shirt"] != look["pants"] for look in looks)
+    assert {look["skin"] for look in looks} <= set(SKIN_TONES)
+
+
+def test_appearance_and_light_change_the_images(tmp_path):
+    """Same motion and cameras; another outfit changes the person's pixels, a dimmer light darkens the image."""
+    base = dataclasses.replace(TINY, frames=1, masks=True)
+    images = {}
+    for name, change in (("default", {}), ("outfit", {"appearance": 4}), ("dim", {"light": 0.4})):
+        session = generate_session(dataclasses.replace(base, **change), tmp_path / name)
+        images[name] = cv2.imread(str(session / "cam0" / "color" / "000000.jpg")).astype(float)
+        person = cv2.imread(str(session / "cam0" / "masks" / "person" / "000000.png"), cv2.IMREAD_GRAYSCALE) > 0
+    assert person.sum() > 50
+    assert np.abs(images["outfit"][person] - images["default"][person]).mean() > 20
+    assert np.abs(images["outfit"][~person] - images["default"][~person]).mean() < 5  # the scene is the same
+    assert images["dim"].mean() < 0.7 * images["default"].mean()
+    with pytest.raises(ValueError, match="light"):
+        generate_session(dataclasses.replace(base, light=0.0), tmp_path / "dark")
+
+
+def test_upper_body_preset_frames_the_trunk_not_the_feet(tmp_path):
+    from intercap.synth.generator import apply_preset
+
+    cfg = dataclasses.replace(apply_preset(TINY, "upper1"), script="hold", frames=1, width=128, height=112)
+    session = generate_session(cfg, tmp_path / "upper")
+    cam = load_cameras(session)[0]
+    points = np.load(session / "ground_truth" / "keypoints3d.npy")[0]
+    T = np.linalg.inv(np.array(cam["T_world_from_cam"]))
+    pc = points @ T[:3, :3].T + T[:3, 3]
+    v = np.array(cam["K"])[1, 1] * pc[:, 1] / pc[:, 2] + np.array(cam["K"])[1, 2]
+    neck, ankles = 1, [11, 14]  # BODY_25
+    assert 0 < v[neck] < cfg.height
+    assert (v[ankles] > cfg.height).all()  # below the image

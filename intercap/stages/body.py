@@ -475,7 +475,10 @@ class BodyFitter:
         camera is otherwise fitted as an adult further away, which reprojects as well. Sizes within
         `tolerance` of the template's are left to the fit; otherwise below 1.5 m the age changes
         (children), above it the height, and the shape prior is centred there.
-        Returns (template, measured stature ratio or None when too few keypoints)."""
+        Returns (template, measured stature ratio or None when too few keypoints or the model's
+        shape is not anny's phenotype)."""
+        if self.model.name != "anny":
+            return template, None
         target, seen = self.torso_keypoints_3d(obs)
         with torch.no_grad():
             placed = self.model(template).keypoints[0, TORSO_KEYPOINTS]  # (6, 3)
@@ -679,11 +682,15 @@ def failure_limit(recent: np.ndarray, factor: float, floor: float = 0.0) -> floa
 
 
 def refit_from_evidence(fitter: BodyFitter, obs: BodyObservations, params: BodyParams, energy: np.ndarray,
-                        failed: np.ndarray, template: BodyParams) -> tuple[BodyParams, np.ndarray]:
+                        failed: np.ndarray, template: BodyParams, gap: np.ndarray | None = None,
+                        gap_limit: float = np.inf) -> tuple[BodyParams, np.ndarray]:
     """Fit the `failed` frames again without their warm start: from the upright `template` turned to
     the keypoints' heading, and from the same turned a quarter, a half and three quarters round (one
     view's keypoints give the heading of a side or back view poorly). Per frame the fit of lowest
-    energy (`frame_energy`, the fit's own objective) of the five starts is kept.
+    energy (`frame_energy`, the fit's own objective) of the five starts is kept, among the fits
+    whose fit-to-data (mm; `gap` (B,) of the current fits) is within `gap_limit`: the robust depth
+    term saturates, so a fit off its points can have the lower energy (one view: keypoints reproject
+    as well at a wrong depth). Where none is within, the fit nearest its points is kept.
     Returns (params, replaced) for all frames of `obs`."""
     idx = np.flatnonzero(failed)
     n = len(idx)
@@ -701,7 +708,16 @@ def refit_from_evidence(fitter: BodyFitter, obs: BodyObservations, params: BodyP
     every = sub.select(np.tile(np.arange(n), len(starts)))  # all starts fitted as one batch
     fitted, stats = fitter.fit(every, BodyParams.cat(starts))
     candidates = np.concatenate([energy[idx][None], frame_energy(fitter, stats["terms"]).reshape(len(starts), n)])
-    best = np.nan_to_num(candidates, nan=np.inf).argmin(0)  # 0: keep the warm start's fit
+    candidates = np.nan_to_num(candidates, nan=np.inf)
+    if gap is not None:
+        with torch.no_grad():
+            gaps = np.concatenate([gap[idx][None], fit_to_data_mm(fitter.model(fitted).vertices, every).reshape(
+                len(starts), n)])
+        off = gaps > gap_limit
+        candidates = np.where(off, np.inf, candidates)
+        none_on = off.all(0)
+        candidates[:, none_on] = np.nan_to_num(gaps[:, none_on], nan=np.inf)  # none on its points: the nearest
+    best = candidates.argmin(0)  # 0: keep the warm start's fit
     params, replaced = params.clone(), np.zeros(len(energy), bool)
     for k, (i, choice) in enumerate(zip(idx, best)):
         if choice:
@@ -779,11 +795,10 @@ def phenotype_for_stature(model, base: torch.Tensor, target_m: torch.Tensor | fl
     AGE, HEIGHT = 1, 4  # anny: gender, age, muscle, weight, height, proportions
     target = float(target_m)
     grid = torch.linspace(0.0, 1.0, steps, dtype=base.dtype, device=base.device)
+    candidates = base.expand(steps, -1).clone()
     if target < adult_min_m:  # children and teenagers: age from newborn to the base's
-        candidates = base.expand(steps, -1).clone()
         candidates[:, AGE] = grid * float(base[AGE])
     else:
-        candidates = base.expand(steps, -1).clone()
         candidates[:, HEIGHT] = grid
     return candidates[(stature(model, candidates) - target).abs().argmin()]
 
@@ -904,12 +919,13 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
                 sub_gap = fit_to_data_mm(model(params).vertices, sub)
             recent = slice(max(0, batch[0] - bcfg.track_window), batch[0])
             one_view = keypoint_views(sub.keypoints, bcfg).cpu().numpy() < 2  # no triangulation to fix the heading
-            failed = ((sub_gap > failure_limit(gap[recent], bcfg.track_factor, bcfg.track_floor_mm))
+            gap_limit = failure_limit(gap[recent], bcfg.track_factor, bcfg.track_floor_mm)
+            failed = ((sub_gap > gap_limit)
                       | (one_view & (stats["terms"]["pose_prior"]
                                      > failure_limit(prior[recent], bcfg.track_prior_factor))))
             if failed.any():  # off the points, or contorted to reach them: refit those frames from the evidence
                 params, replaced = refit_from_evidence(fitter, sub, params, frame_energy(fitter, stats["terms"]), failed,
-                                                       upright)
+                                                       upright, sub_gap, gap_limit)
                 reinitialised[batch[keep]] = replaced
                 log.info("body: frames %s failed (fit-to-data or pose prior); refitted from the evidence, "
                          "%d replaced", ids[keep][failed].tolist(), int(replaced.sum()))
@@ -923,7 +939,9 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
                 getattr(fitted, name)[batch[keep]] = value
             reproj[batch[keep]] = reprojection_error_px(model, params, sub, cameras)
             valid[batch[keep]] = True
-            template = params[len(keep) - 1]
+            on_points = np.flatnonzero(sub_gap <= gap_limit)
+            if len(on_points):  # the next batch starts from the last fit that lies on its points, not a failed one
+                template = params[int(on_points[-1])]
         done[batch] = True
         seconds[batch] = (time.perf_counter() - start) / len(batch)
         queue.put(len(batch))

@@ -115,6 +115,7 @@ class BodyConfig:
     visibility_cells: int = 100  # z-buffer cells across the image width for the visibility test
     w_keypoints: float = 1.0
     w_depth: float = 3.0e5
+    one_view_depth_factor: float = 3.3  # E_D x this on frames fewer than two views see (nothing triangulates: depth decides)
     w_pose_prior: float = 10.0  # learned Gaussian mixture (CMU)
     w_joint_limits: float = 1.0e4
     w_bending: float = 1.0e3

@@ -555,9 +555,10 @@ class BodyFitter:
                 pix, obs.keypoints[..., :2], conf, weights, self.scale_px, rho or self.cfg.keypoint_rho)
         if "depth" in terms:
             nearest, normals = matches
+            one_view = keypoint_views(obs.keypoints, self.cfg) < 2
             result["depth"] = losses.point_to_visible_vertices(
                 obs.points, obs.point_valid, out.vertices[:, :len(self.subset)], normals, nearest,
-                self.cfg.depth_scale_m)
+                self.cfg.depth_scale_m) * torch.where(one_view, self.cfg.one_view_depth_factor, 1.0)
         if "pose_prior" in terms:
             result["pose_prior"] = priors.learned_pose_prior(params.body_pose)
         if "joint_limits" in terms:

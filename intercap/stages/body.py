@@ -682,6 +682,26 @@ def failure_limit(recent: np.ndarray, factor: float, floor: float = 0.0) -> floa
     return max(floor, factor * median) if median > 0 else (floor or np.inf)
 
 
+# anny bones of a stoop (picking something up from the floor), axis-angle about x, with the pelvis pitched forward
+STOOP_POSE = {"upperleg01.L": -1.05, "upperleg01.R": -1.05, "lowerleg01.L": 1.25, "lowerleg01.R": 1.25,
+              "foot.L": -0.75, "foot.R": -0.75, "spine04": 0.18, "spine03": 0.18, "spine02": 0.12}
+STOOP_PITCH = 0.55  # rad
+
+
+def stooped(model, params: BodyParams, centre: torch.Tensor) -> BodyParams:
+    """`params` (upright) bent down: the pelvis pitched forward about the torso centre (B, 3), hips and
+    knees flexed, the spine rounded (a start a warm start cannot reach from upright in a few frames)."""
+    bent = params.clone()
+    names = model.body_joint_names
+    for bone, angle in STOOP_POSE.items():
+        bent.body_pose[:, names.index(bone), 0] = angle
+    R = axis_angle_to_matrix(bent.global_orient)
+    lateral = np.cross(np.asarray(model.up_axis, float), np.asarray(model.forward_axis, float))
+    side = R @ torch.as_tensor(lateral, dtype=R.dtype, device=R.device)  # (B, 3) the body's lateral axis, world
+    turn_about(bent, axis_angle_to_matrix(side * STOOP_PITCH), centre)
+    return bent
+
+
 def refit_from_evidence(fitter: BodyFitter, obs: BodyObservations, params: BodyParams, energy: np.ndarray,
                         failed: np.ndarray, template: BodyParams, gap: np.ndarray | None = None,
                         gap_limit: float = np.inf) -> tuple[BodyParams, np.ndarray]:
@@ -705,6 +725,12 @@ def refit_from_evidence(fitter: BodyFitter, obs: BodyObservations, params: BodyP
         for quarter in (1, 2, 3):
             turned = init.clone()
             turn_about(turned, axis_angle_to_matrix(up * (quarter * np.pi / 2)), centre)
+            starts.append(turned)
+        if fitter.model.name == "anny":  # bent down, facing the keypoints' heading and turned round
+            bent = stooped(fitter.model, init, centre)
+            starts.append(bent)
+            turned = bent.clone()
+            turn_about(turned, axis_angle_to_matrix(up * np.pi), centre)
             starts.append(turned)
     every = sub.select(np.tile(np.arange(n), len(starts)))  # all starts fitted as one batch
     fitted, stats = fitter.fit(every, BodyParams.cat(starts))

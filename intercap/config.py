@@ -133,7 +133,8 @@ class BodyConfig:
     # tracking: a frame whose person points lie far from its fit (median distance, mm), or, seen with
     # keypoints by fewer than two views, whose pose the learned prior finds far less likely than recent
     # frames' (contorted to reach the evidence), is refitted from the evidence (the upright template at
-    # four headings) instead of from the previous batch's pose; the fit of lowest energy is kept
+    # four headings, stooped at two) instead of from the previous batch's pose; of the fits on their
+    # points the one of lowest energy is kept, and later batches start from the last fit on its points
     track_floor_mm: float = 40.0  # fit-to-data: never a failure below this
     track_factor: float = 2.5  # fit-to-data: a failure above this many times its running median
     track_prior_factor: float = 1.5  # pose prior (frames < 2 keypoint views): a failure above this x its running median

@@ -707,8 +707,9 @@ def refit_from_evidence(fitter: BodyFitter, obs: BodyObservations, params: BodyP
                         gap_limit: float = np.inf) -> tuple[BodyParams, np.ndarray]:
     """Fit the `failed` frames again without their warm start: from the upright `template` turned to
     the keypoints' heading, and from the same turned a quarter, a half and three quarters round (one
-    view's keypoints give the heading of a side or back view poorly). Per frame the fit of lowest
-    energy (`frame_energy`, the fit's own objective) of the five starts is kept, among the fits
+    view's keypoints give the heading of a side or back view poorly), and (anny) from the same bent
+    down (`stooped`) facing that heading and turned round. Per frame the fit of lowest energy
+    (`frame_energy`, the fit's own objective) of these starts and the warm start's fit is kept, among the fits
     whose fit-to-data (mm; `gap` (B,) of the current fits) is within `gap_limit`: the robust depth
     term saturates, so a fit off its points can have the lower energy (one view: keypoints reproject
     as well at a wrong depth). Where none is within, the fit nearest its points is kept.

@@ -123,7 +123,6 @@ def _stoop(depth: float, arms_forward: float = 1.0) -> dict:
     pose = {
         "upperleg01.L": (-0.5 * d, 0.0, 0.0), "upperleg01.R": (-0.5 * d, 0.0, 0.0),  # from the vertical
         "lowerleg01.L": (1.25 * d, 0.0, 0.0), "lowerleg01.R": (1.25 * d, 0.0, 0.0),
-        "foot.L": (-0.45 * d, 0.0, 0.0), "foot.R": (-0.45 * d, 0.0, 0.0),
         "spine04": (0.18 * d, 0.0, 0.0), "spine03": (0.18 * d, 0.0, 0.0), "spine02": (0.12 * d, 0.0, 0.0),
         "neck01": (-0.25 * d, 0.0, 0.0), "head": (-0.2 * d, 0.0, 0.0),
         "upperarm01.L": (-0.7 * arms_forward, 0.15, 0.0), "upperarm01.R": (-0.7 * arms_forward, -0.15, 0.0),
@@ -375,7 +374,11 @@ def posture_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarr
     return eased_rotations(key_times, keys, times)
 
 
-def leg_cycle(u: np.ndarray, stance: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+STANCE = 0.5  # share of a gait cycle a foot is down
+LEG_PHASE = {"L": 0.25, "R": 0.75}  # each leg's offset in the gait cycle: the walk starts mid-stride, thighs together
+
+
+def leg_cycle(u: np.ndarray, stance: float = STANCE) -> tuple[np.ndarray, np.ndarray]:
     """Thigh swing (+1 forward .. -1 back) and swing lift (0..1) at leg phase u (cycles).
 
     In stance (u mod 1 < `stance`) the thigh sweeps back linearly, so the foot moves
@@ -402,11 +405,11 @@ def gait_cycles(script: Script, times: np.ndarray, cadence_hz: float = 0.9) -> t
     return np.interp(times, fine, cycles_fine), np.abs(eased_scalar(script.walk_keys, times))
 
 
-def left_stance_weight(script: Script, times: np.ndarray, stance: float = 0.5) -> np.ndarray:
+def left_stance_weight(script: Script, times: np.ndarray, stance: float = STANCE) -> np.ndarray:
     """(T,) share of the weight on the left foot: its stance phase of the gait cycle while
     walking, both feet alike while standing (amplitude below 5 %)."""
     cycles, amp = gait_cycles(script, times)
-    on_left = (np.mod(cycles + 0.25, 1.0) < stance).astype(float)  # the left leg's phase (gait_rotvecs)
+    on_left = (np.mod(cycles + LEG_PHASE["L"], 1.0) < stance).astype(float)
     return 0.5 + (on_left - 0.5) * np.clip(amp / 0.05, 0.0, 1.0)
 
 
@@ -421,14 +424,14 @@ def gait_rotvecs(script: Script, body_joint_names: list[str], times: np.ndarray)
     index = {n: i for i, n in enumerate(body_joint_names)}
     out = np.zeros((len(times), len(body_joint_names), 3))
     lifts = {}
-    for side, offset in (("L", 0.25), ("R", 0.75)):  # start mid-stride, thighs together
+    for side, offset in LEG_PHASE.items():
         thigh, lift = leg_cycle(cycles + offset)
         out[:, index[f"upperleg01.{side}"], 0] = -0.38 * amp * thigh
         out[:, index[f"lowerleg01.{side}"], 0] = amp * (0.08 + 0.85 * lift)
         lifts[side] = amp * lift
         out[:, index[f"upperarm01.{side}"], 0] = 0.3 * amp * np.cos(2 * np.pi * (cycles + offset))
         out[:, index[f"lowerarm01.{side}"], 0] = -0.15 * amp
-    out[:, index["spine04"], 2] = 0.06 * amp * np.cos(2 * np.pi * (cycles + 0.25))
+    out[:, index["spine04"], 2] = 0.06 * amp * np.cos(2 * np.pi * (cycles + LEG_PHASE["L"]))
     return out, lifts
 
 

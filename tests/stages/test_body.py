@@ -41,6 +41,16 @@ def observations(session: Session, frame_ids, cfg, cameras) -> body.BodyObservat
     return body.BodyObservations(np.asarray(frame_ids), torch.from_numpy(keypoints), points, valid)
 
 
+def frames_0_and_2(sample):
+    """(cameras, body config, true params, true keypoints3d, frames, observations) of the sample's frames 0 and 2."""
+    session = Session.load(sample)
+    cameras = Cameras.from_infos(session.cameras)
+    cfg = load_config().body
+    params, keypoints3d = truth(sample)
+    frames = [0, 2]
+    return cameras, cfg, params, keypoints3d, frames, observations(session, session.frame_ids[frames], cfg, cameras)
+
+
 def mpjpe_mm(model, params: BodyParams, keypoints3d: np.ndarray) -> np.ndarray:
     with torch.no_grad():
         fitted = model(params).keypoints[:, :25].numpy()
@@ -132,12 +142,7 @@ def test_self_penetration_spheres(model):
 
 
 def test_fit_recovers_a_perturbed_pose(model, sample):
-    session = Session.load(sample)
-    cameras = Cameras.from_infos(session.cameras)
-    cfg = load_config().body
-    params, keypoints3d = truth(sample)
-    frames = [0, 2]
-    obs = observations(session, session.frame_ids[frames], cfg, cameras)
+    cameras, cfg, params, keypoints3d, frames, obs = frames_0_and_2(sample)
     start = perturbed(params[frames[0]:frames[0] + 1].map(lambda t: t.expand(len(frames), *t.shape[1:]).clone()))
     before = mpjpe_mm(model, start, keypoints3d[frames])
     fitted, stats = body.BodyFitter(model, cameras, cfg).fit(obs, start)
@@ -254,12 +259,7 @@ def test_two_workers_fit_the_take_as_one_process_does(tmp_path):
 def test_a_failed_fit_is_refitted_from_the_evidence(model, sample):
     """A fit turned round and 0.4 m off (a warm start gone wrong) lies far from its depth points
     (fit_to_data_mm); refitting from the evidence brings frames 0 and 2 back onto them."""
-    session = Session.load(sample)
-    cameras = Cameras.from_infos(session.cameras)
-    cfg = load_config().body
-    params, keypoints3d = truth(sample)
-    frames = [0, 2]
-    obs = observations(session, session.frame_ids[frames], cfg, cameras)
+    cameras, cfg, params, keypoints3d, frames, obs = frames_0_and_2(sample)
     good = BodyParams.cat([params[0], params[2]])
     wrong = good.clone()
     with torch.no_grad():

@@ -9,7 +9,10 @@ Masks come from the session, or are derived from depth: a background model per
 camera (the person's pixels left out, beyond-range regions known as far), the
 foreground outside the person, and of that the pixels whose 3D points lie near
 the predicted pose (render-compare-and-preserve in 3D); pixels without depth or
-barely in front of the background are unknown, not background.
+barely in front of the background are unknown, not background. Where the object
+may have moved far from the prediction (a fast lift), that cut is wide and takes
+in the hands and arms that hold it: the mask is cut again round the fit, and the
+fit refined on it (`ObjectTracker.recut`).
 
 The first pose comes from session.yaml when given, else from registering the
 mesh to the first frame's object points (PCA and FPFH starts, ICP, the best
@@ -399,6 +402,15 @@ class ObjectTracker:
         return Fit(R=R, t=self._from_centre(R, t_c.detach().double().cpu().numpy()), energy=float(total),
                    confidence=confidence)
 
+    def recut(self, frame_id: int, fit: Fit) -> tuple[Observation, Fit | None]:
+        """Derived masks cut round `fit`'s pose with no reach, and the fit refined on them (None when
+        no view keeps enough object pixels). A mask cut wide round a prediction (a fast lift) takes
+        in the hands and arms that hold the object; cut round the fit, it keeps the object alone."""
+        obs = self.observe(frame_id, (fit.R, fit.t))
+        if obs.visible_views < self.cfg.min_views:
+            return obs, None
+        return obs, self.fit(obs, fit.R, fit.t)
+
     @staticmethod
     def _iou(rendered: torch.Tensor, observed: torch.Tensor, has_view: np.ndarray) -> float:
         inter = (rendered & observed).flatten(1).sum(1).float()
@@ -589,6 +601,12 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
                 fit, status = tracker.initialise(obs), REINITIALISED
             else:
                 fit, status = tracker.fit(obs, *predicted), TRACKED
+                if reach > cfg.near_margin_m and not tracker.use_masks:
+                    # A mask cut this wide round the prediction takes in the hands and arms of a
+                    # fast lift: cut it again round the fit and refine there, if that agrees.
+                    tight_obs, tight = tracker.recut(frame_id, fit)
+                    if good(tight):
+                        obs, fit = tight_obs, tight
                 if not good(fit):
                     local = tracker.refit(obs, fit, predicted)
                     if local.energy < fit.energy:

@@ -6,6 +6,7 @@ import importlib.util
 import json
 import os
 
+import cv2
 import numpy as np
 import pytest
 
@@ -17,10 +18,15 @@ from intercap.stages.detect import (
     MP_POSE,
     DetectorUnavailable,
     KeypointDetector,
+    PersonCropDetector,
+    crop_affine,
+    crop_to_image,
+    cut_crop,
     detect_session,
     holistic_to_openpose,
     keypoints_path,
     make_detector,
+    person_box,
     write_openpose_json,
 )
 
@@ -208,6 +214,156 @@ def test_make_detector_errors(monkeypatch):
         make_detector("mediapipe")
 
 
+# --------------------------------------------------------------------------- person crop
+
+
+def test_crop_mapping_is_exact_both_ways():
+    """Image pixels -> crop pixels (the affine cut_crop resamples with) -> back: the same pixels,
+    and a bright pixel of the image lands where the affine says in the crop."""
+    rng = np.random.default_rng(3)
+    centre, side, size = np.array([101.3, 57.8]), 83.0, 512
+    points = rng.uniform(0, 200, (137, 2))
+    M = crop_affine(centre, side, size)
+    in_crop = points @ M[:, :2].T + M[:, 2]  # (137, 2)
+    kp = np.concatenate([in_crop, np.ones((137, 1))], 1)
+    back = crop_to_image(kp, centre, side, size, width=320, height=288)
+    np.testing.assert_allclose(back[:, :2], points, atol=1e-3)
+    # x4 zoom placed so that the image pixel (30, 20) lands on the crop pixel (31, 31): the crop
+    # there is that pixel, and a quarter pixel away (the next crop pixels) 3/4 of it
+    image = np.zeros((48, 64, 3), np.uint8)
+    image[20, 30] = 200
+    centre = np.array([30.125, 20.125])
+    np.testing.assert_allclose(crop_affine(centre, 16.0, 64) @ [30.0, 20.0, 1.0], [31.0, 31.0])
+    crop = cut_crop(image, centre, 16.0, 64)[..., 0]
+    assert crop[31, 31] == 200 and crop.max() == 200
+    assert crop[31, 30] == crop[31, 32] == crop[30, 31] == crop[32, 31] == 150
+    edge = cut_crop(image, np.array([2.0, 2.0]), 16.0, 64)
+    assert np.all(edge[:20, :20] == 0)  # black beyond the image's edge
+
+
+class BlobDetector:
+    """A fake person detector on images of red dots: BODY_25 slots 0..n-1 are the intensity-weighted
+    centres of the dots, left to right; dots smaller than `min_area` pixels are not seen (a small
+    person is not found), fewer than four dots: no person. Counts its calls."""
+
+    name = "blobs"
+
+    def __init__(self, min_area: int = 50):
+        self.min_area = min_area
+        self.calls = 0
+
+    def detect(self, image_rgb):
+        self.calls += 1
+        red = image_rgb[..., 0].astype(np.float64)
+        n, labels, stats, _ = cv2.connectedComponentsWithStats((red > 0).astype(np.uint8))
+        ys, xs = np.mgrid[: red.shape[0], : red.shape[1]]
+        centres = []
+        for i in range(1, n):
+            if stats[i, cv2.CC_STAT_AREA] >= self.min_area:
+                w = red * (labels == i)
+                centres.append(((w * xs).sum() / w.sum(), (w * ys).sum() / w.sum()))
+        kp = np.zeros((137, 3), np.float32)
+        if len(centres) >= 4:
+            centres.sort()
+            kp[: len(centres), :2] = centres
+            kp[: len(centres), 2] = 1.0
+        return kp
+
+
+DOTS = np.array([[140.0, 131.0], [147.0, 165.0], [150.0, 100.0], [158.0, 150.0], [162.0, 118.0]])  # (5, 2), by x
+
+
+def dots_image(radius: int, shift=(0, 0), width: int = 320, height: int = 288) -> np.ndarray:
+    """Red square dots of side 2 * radius + 1 centred on DOTS (+ shift) on black."""
+    image = np.zeros((height, width, 3), np.uint8)
+    for x, y in (DOTS + np.asarray(shift)).astype(int):
+        image[y - radius : y + radius + 1, x - radius : x + radius + 1, 0] = 200
+    return image
+
+
+def test_person_crop_maps_the_crop_detection_back_to_image_pixels():
+    inner = BlobDetector(min_area=50)
+    crop = PersonCropDetector(inner, crop_size_px=512)
+    big = dots_image(radius=4)  # 81-pixel dots: the full image finds them, then the crop does
+    kp = crop.detect(big)
+    assert inner.calls == 2 and crop.full_passes == 1 and crop.crops == 1
+    np.testing.assert_allclose(kp[:5, :2], DOTS, atol=0.05)  # bilinear resampling keeps the dots' centres
+    assert np.all(kp[:5, 2] == 1) and np.all(kp[5:] == 0)
+    assert isinstance(crop, KeypointDetector)
+    # a small person (9-pixel dots) is missed in the full image, found in the crop around last frame's box
+    small = dots_image(radius=1, shift=(3, -2))
+    assert np.all(inner.detect(small)[:, 2] == 0)
+    kp = crop.detect(small, hint=person_box(crop.detect(big)))
+    np.testing.assert_allclose(kp[:5, :2], DOTS + [3, -2], atol=0.05)
+    assert np.all(crop.detect(small)[:, 2] == 0)  # no box to crop around: nothing found
+
+
+def test_person_crop_points_beyond_the_image_edge_are_not_detected():
+    """A person at the image's corner: the crop reaches past the image, and what the inner
+    detector reports in that black border is not on the image (conf 0)."""
+
+    class EdgeDetector(BlobDetector):
+        def detect(self, image_rgb):
+            kp = super().detect(image_rgb)
+            if kp[0, 2] > 0:
+                kp[5] = (2.0, 2.0, 1.0)  # the crop's top left corner
+            return kp
+
+    crop = PersonCropDetector(EdgeDetector(min_area=50), crop_size_px=256)
+    image = dots_image(radius=4, shift=(-135, -92))  # dots from (5, 8) to (27, 73)
+    kp = crop.detect(image)
+    np.testing.assert_allclose(kp[:5, :2], DOTS - [135, 92], atol=0.05)
+    assert np.all(kp[5] == 0)  # the corner point lies left of / above the image
+
+
+class DotsSession:
+    """Just what detect_session reads: one view, frames 0..n-1 of dot images."""
+
+    def __init__(self, images):
+        self.images = images
+        self.cameras = [type("Cam", (), {"name": "cam0"})()]
+        self.frame_ids = np.arange(len(images))
+
+    def read_color(self, cam, frame_id):
+        return self.images[int(frame_id)]
+
+
+def test_detect_session_finds_a_small_person_from_the_next_frames_box(tmp_path):
+    """Frames 0 and 1 show a person too small for the full image, frame 2 a big one: going
+    forward only frame 2 is found, going back frame 1 is found around frame 2's box, frame 0
+    around frame 1's; frame 3 (small) is found around frame 2's box going forward."""
+    images = [dots_image(1, (-4, 0)), dots_image(1, (-2, 0)), dots_image(4), dots_image(1, (2, 1))]
+    session = DotsSession(images)
+    inner = BlobDetector(min_area=50)
+    counts = detect_session(session, tmp_path, PersonCropDetector(inner), progress=False)
+    assert counts == {"written": 4, "skipped": 0, "dropped": 0, "no_person": 0}
+    for frame, shift in enumerate([(-4, 0), (-2, 0), (0, 0), (2, 1)]):
+        kp, _ = openpose_to_array(json.loads(keypoints_path(tmp_path, "cam0", frame).read_text()))
+        np.testing.assert_allclose(kp[:5, :2], DOTS + shift, atol=0.05)
+    # without the crop the small person is never found
+    plain = detect_session(session, tmp_path / "plain", BlobDetector(min_area=50), progress=False)
+    assert plain["no_person"] == 3
+
+
+def test_the_stage_detects_through_the_person_crop_by_default(tiny_session, tmp_path, monkeypatch):
+    import contextlib
+
+    from intercap.config import load_config
+
+    used = []
+    monkeypatch.setattr(detect, "make_detector", lambda name, **kw: contextlib.nullcontext(BlobDetector()))
+    monkeypatch.setattr(detect, "detect_session", lambda session, out, detector, **kw: used.append(detector) or {})
+    cfg = load_config()
+    cfg.detect.use_session_keypoints = False
+    cfg.detect.crop_size_px = 320
+    detect.run(Session.load(tiny_session), cfg, tmp_path, progress=False)
+    assert isinstance(used[0], PersonCropDetector) and used[0].crop_size_px == 320
+    assert isinstance(used[0].inner, BlobDetector)
+    cfg.detect.person_crop = False
+    detect.run(Session.load(tiny_session), cfg, tmp_path, progress=False)
+    assert isinstance(used[1], BlobDetector)
+
+
 # --------------------------------------------------------------------------- real detections (mediapipe)
 
 
@@ -277,6 +433,21 @@ def test_mediapipe_finds_a_rendered_anny_body_and_hands(holistic):
           f"right hand {np.median(err[46:67]):.1f}")
 
 
+def test_person_crop_finds_the_hands_of_a_small_person(holistic):
+    """A person 85 px tall in a 320 x 288 image: Holistic on the full image finds no hand and puts
+    the body ~9 px off; on the crop around the person it finds a hand within a few pixels."""
+    image, truth = render_anny(camera_distance=9.0, width=320, height=288)
+    assert 75 < np.ptp(truth[:25, 1]) < 95
+    full = holistic.detect(image)
+    crop = PersonCropDetector(holistic).detect(image)
+    body = [np.linalg.norm(kp[:25, :2] - truth[:25], axis=1)[kp[:25, 2] > 0.5] for kp in (full, crop)]
+    assert len(body[1]) >= 23 and np.median(body[1]) < 3.0 < np.median(body[0])
+    assert np.all(full[25:67, 2] == 0)
+    hands = crop[25:67, 2] > 0
+    assert hands.sum() >= 21
+    assert np.all(np.linalg.norm(crop[25:67, :2] - truth[25:], axis=1)[hands] < 5.0)
+
+
 def test_mediapipe_face_points_are_in_ibug_layout(holistic):
     image, truth = render_anny(camera_distance=0.55, target="face")
     face = holistic.detect(image)[67:]  # (70, 3)
@@ -307,7 +478,9 @@ def test_detect_fills_only_the_views_and_frames_without_session_keypoints(tiny_s
     fake = FakeDetector()
     monkeypatch.setattr(detect, "make_detector", lambda name, **kw: contextlib.nullcontext(fake))
     out = tmp_path / "out"
-    figures = detect.run(session, load_config(), out, progress=False)
+    cfg = load_config()
+    cfg.detect.person_crop = False  # the fake's keypoints are checked as it wrote them
+    figures = detect.run(session, cfg, out, progress=False)
     assert figures["keypoints"] == "session+mediapipe"
     assert figures["keypoints_detected"] == 4 and figures["keypoints_from_session"] == 2 and fake.calls == 4
     assert not keypoints_path(out, "cam0", 0).exists() and keypoints_path(out, "cam0", 1).exists()

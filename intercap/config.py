@@ -116,6 +116,8 @@ class BodyConfig:
     keypoint_rho_start: float = 400.0  # the same in the first phases: far-off starts are not outliers
     hand_keypoint_weight: float = 1.0  # per-joint weight of the 2 x 21 hand keypoints (body: 1)
     depth_scale_m: float = 0.05  # Geman-McClure scale of E_D
+    depth_model_to_data: float = 1.0  # weight of E_D's model-to-data half (each visible vertex to its nearest point)
+    depth_model_to_data_max_m: float = 0.10  # a visible vertex with no point this near has none (hidden by the object)
     visibility_margin_m: float = 0.03  # a vertex is visible when at most this behind the nearest surface
     visibility_cells: int = 100  # z-buffer cells across the image width for the visibility test
     w_keypoints: float = 1.0
@@ -132,7 +134,7 @@ class BodyConfig:
     fit_expression: bool = False  # anny has no face landmarks in our keypoint set: expression stays neutral
     orient_steps: int = 5  # L-BFGS steps of the phase that moves only orientation + translation
     pose_steps: int = 15  # + body pose and shape, keypoints only
-    full_steps: int = 10  # + hands, with the depth term and self-penetration
+    full_steps: int = 20  # + hands, with the depth term and self-penetration (10: stoops stay 2x off, BENCHMARKS.md)
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
     # tracking: a frame whose person points lie far from its fit (median distance, mm), or, seen with

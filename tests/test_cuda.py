@@ -145,7 +145,7 @@ def test_body_fit_energies_on_gpu_match_cpu(models, tmp_path):
         same = (on_gpu[0].cpu() == matches[0]).double().mean()
         assert same > 0.98, f"only {same:.3f} of the depth correspondences agree"
         expected = fc.energy_terms(pc, oc, terms, matches)
-        got = fg.energy_terms(pc.to(DEVICE), og, terms, tuple(m.to(DEVICE) for m in matches))
+        got = fg.energy_terms(pc.to(DEVICE), og, terms, tuple(None if m is None else m.to(DEVICE) for m in matches))
     assert set(got) == set(expected)
     for name in expected:
         close(got[name], expected[name], f"body term {name}")

@@ -134,6 +134,55 @@ def point_to_visible_vertices(
     return rho.sum(-1).div(usable.sum(-1).clamp(min=1)).sum(-1) * scale**2
 
 
+def nearest_points(vertices: torch.Tensor, visible: torch.Tensor, points: torch.Tensor, point_valid: torch.Tensor,
+                   max_distance: float) -> torch.Tensor:
+    """For each fitting vertex (B, N, 3) a view sees (visible (B, C, N)), the index (B, C, N) of that
+    view's nearest segmented point (B, C, P, 3); -1 where the view sees it not, has no point, or the
+    nearest is farther than `max_distance` (a part the object hides has no points of its own).
+    No gradient: the model-to-data half of E_D's correspondences."""
+    from scipy.spatial import cKDTree
+
+    B, C, P, _ = points.shape
+    pts, ok = points.detach().cpu().numpy(), point_valid.cpu().numpy()
+    verts, seen = vertices.detach().cpu().numpy(), visible.cpu().numpy()
+    nearest = np.full((B, C, vertices.shape[1]), -1, np.int64)
+    for b in range(B):
+        for c in range(C):
+            ids, have = np.flatnonzero(seen[b, c]), np.flatnonzero(ok[b, c])
+            if len(ids) and len(have):
+                distance, index = cKDTree(pts[b, c, have]).query(verts[b, ids], distance_upper_bound=max_distance)
+                found = np.isfinite(distance)
+                nearest[b, c, ids[found]] = have[index[found]]
+    return torch.from_numpy(nearest).to(points.device)
+
+
+def visible_vertices_to_points(
+    vertices: torch.Tensor,
+    normals: torch.Tensor,
+    points: torch.Tensor,
+    nearest: torch.Tensor,
+    scale: float,
+    tangent_weight: float = 0.25,
+) -> torch.Tensor:
+    """E_D's model-to-data half: per view the mean over the fitting vertices it sees of
+    rho(distance to the nearest segmented point), summed over views; (B, N, 3) -> (B,).
+
+    The data-to-model half alone lets a part of the surface hang where the sensor saw nothing
+    (a stooped torso 5 cm below its points, whose points then match the arms and thighs):
+    every visible vertex should have data on it. `nearest` (B, C, N) from `nearest_points`;
+    the distance is point-to-plane at the vertex plus `tangent_weight` times the in-plane offset
+    (the points are a sparse subset); Geman-McClure with `scale` metres, scaled by scale^2."""
+    B, C, N = nearest.shape
+    usable = nearest >= 0
+    matched = torch.gather(points, 2, nearest.clamp(min=0)[..., None].expand(B, C, N, 3))  # (B, C, N, 3)
+    offset = matched - vertices[:, None]
+    along = (offset * normals[:, None]).sum(-1, keepdim=True)
+    tangent = offset - along * normals[:, None]
+    squared = along[..., 0] ** 2 + tangent_weight * (tangent * tangent).sum(-1)  # (B, C, N)
+    rho = squared / (squared + scale * scale) * usable
+    return rho.sum(-1).div(usable.sum(-1).clamp(min=1)).sum(-1) * scale**2
+
+
 def sphere_self_penetration(centres: torch.Tensor, radii: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:
     """Self-penetration approximated by spheres on the body's segments, (B, S, 3) -> (B,):
     sum over non-adjacent sphere pairs (Q, 2) of relu(r_i + r_j - |c_i - c_j|)^2 in metres^2."""

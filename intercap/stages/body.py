@@ -554,11 +554,15 @@ class BodyFitter:
             result["keypoints"] = losses.keypoint_reprojection(
                 pix, obs.keypoints[..., :2], conf, weights, self.scale_px, rho or self.cfg.keypoint_rho)
         if "depth" in terms:
-            nearest, normals = matches
+            nearest, normals, nearest_to_vertices = matches
             one_view = keypoint_views(obs.keypoints, self.cfg) < 2
-            result["depth"] = losses.point_to_visible_vertices(
-                obs.points, obs.point_valid, out.vertices[:, :len(self.subset)], normals, nearest,
-                self.cfg.depth_scale_m) * torch.where(one_view, self.cfg.one_view_depth_factor, 1.0)
+            vertices = out.vertices[:, :len(self.subset)]
+            depth = losses.point_to_visible_vertices(obs.points, obs.point_valid, vertices, normals, nearest,
+                                                     self.cfg.depth_scale_m)
+            if self.cfg.depth_model_to_data > 0:
+                depth = depth + self.cfg.depth_model_to_data * losses.visible_vertices_to_points(
+                    vertices, normals, obs.points, nearest_to_vertices, self.cfg.depth_scale_m)
+            result["depth"] = depth * torch.where(one_view, self.cfg.one_view_depth_factor, 1.0)
         if "pose_prior" in terms:
             result["pose_prior"] = priors.learned_pose_prior(params.body_pose)
         if "joint_limits" in terms:
@@ -580,16 +584,22 @@ class BodyFitter:
     def weight(self, term: str) -> float:
         return getattr(self.cfg, f"w_{term}")
 
-    def correspondences(self, params: BodyParams, obs: BodyObservations) -> tuple[torch.Tensor, torch.Tensor]:
+    def correspondences(self, params: BodyParams, obs: BodyObservations
+                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
         """E_D's data association, refreshed once per L-BFGS step (as ICP): per point the nearest
-        fitting vertex its view sees (B, C, P), and the fitting vertices' normals (B, N, 3)."""
+        fitting vertex its view sees (B, C, P), the fitting vertices' normals (B, N, 3), and per
+        fitting vertex each view sees its nearest point (B, C, N) (None when that half is off)."""
         with torch.no_grad():
             vertices = self.model(params).vertices
             normals = vertex_normals(vertices, self.model.faces)
             visible = visible_vertices(vertices, normals, self.subset, self.cameras,
                                        self.cfg.visibility_cells, self.cfg.visibility_margin_m)
             nearest = losses.nearest_visible_vertices(obs.points, vertices[:, self.subset], visible)
-        return nearest, normals[:, self.subset]
+            to_vertices = None
+            if self.cfg.depth_model_to_data > 0:
+                to_vertices = losses.nearest_points(vertices[:, self.subset], visible, obs.points, obs.point_valid,
+                                                    self.cfg.depth_model_to_data_max_m)
+        return nearest, normals[:, self.subset], to_vertices
 
     def fit(self, obs: BodyObservations, init: BodyParams, monitor=None) -> tuple[BodyParams, dict]:
         """Run PHASES from `init`; returns the fitted parameters and per-frame figures."""

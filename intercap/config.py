@@ -108,6 +108,7 @@ class BodyConfig:
     use_session_masks: bool = True  # False: derive person masks from depth even when the session has them
     batch_frames: int = 16  # frames fitted as one batch (warm-started from the previous batch); 8: ~0.3 mm better, 1.4x slower
     min_keypoint_confidence: float = 0.2  # detections below this are ignored
+    keypoint_view_check_px: float = 30.0  # a detection this far (at 640 px width) from the other views' point is dropped; 0: off
     min_body_keypoints: int = 6  # a view counts for a frame when it has this many confident body keypoints
     min_points: int = 100  # a view's depth counts when its person mask gives this many points
     points_per_view: int = 400  # segmented depth points per view used by E_D

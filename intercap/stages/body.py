@@ -87,10 +87,13 @@ class KeypointSource:
     """Per view and frame, the (137, 3) OpenPose keypoints: the session's JSON where that view and
     frame has one, otherwise what the `detect` stage wrote under OUT/detect/."""
 
-    def __init__(self, session, out_dir: Path, use_session: bool = True):
+    def __init__(self, session, out_dir: Path, use_session: bool = True, cameras: Cameras | None = None,
+                 view_check_px: float = 0.0):
         from intercap.stages.detect import keypoints_path
 
         self.session = session
+        self.cameras, self.view_check_px = cameras, view_check_px  # `reject_disagreeing_views` when both set
+        self.rejected = 0  # keypoints dropped by that check so far
         self.out_dir = Path(out_dir)
         self._path = keypoints_path
         self.use_session = use_session
@@ -120,6 +123,11 @@ class KeypointSource:
                 if kp is not None:
                     out[b, c] = kp[:NUM_BODY_HANDS]
         out[..., 2] = np.where(out[..., 2] >= min_confidence, out[..., 2], 0.0)
+        if self.cameras is not None and self.view_check_px > 0:
+            checked = reject_disagreeing_views(torch.from_numpy(out).to(self.cameras.K), self.cameras,
+                                               self.view_check_px).cpu().numpy()
+            self.rejected += int(((out[..., 2] > 0) & (checked[..., 2] == 0)).sum())
+            out = checked
         return out
 
 
@@ -262,6 +270,42 @@ def triangulate(keypoints: torch.Tensor, cameras: Cameras) -> tuple[torch.Tensor
     z = (points[None] @ P[:, :, :3].transpose(1, 2))[..., 2] + P[:, None, 2, 3]  # (C, BK)
     in_front = ((z > 0) | (conf == 0)).all(0)
     return points.view(B, K, 3), (seen & in_front).view(B, K)
+
+
+def reject_disagreeing_views(keypoints: torch.Tensor, cameras: Cameras, threshold_px: float,
+                             rounds: int = 2) -> torch.Tensor:
+    """(B, C, K, 3) keypoints with the detections that disagree with the other views dropped
+    (confidence 0). Per frame and keypoint seen by three views or more, each view is left out in
+    turn and the others triangulated; the view whose leaving out makes the others agree (all within
+    `threshold_px` at 640 px image width, scaled with it) goes when it is itself farther than that
+    from their point; then again on what is left (`rounds` times). A detector that gets one view of
+    a bent-over person wrong (its joints 10-25 px off) otherwise pulls the fit as much as the views
+    that agree."""
+    kp = keypoints.clone()
+    B, C, K, _ = kp.shape
+    limit = (threshold_px * cameras.width.to(kp.dtype) / 640.0)[:, None, None]  # (C, 1, 1)
+    for _ in range(rounds):
+        seen = kp[..., 2] > 0  # (B, C, K)
+        own = torch.full((C, B, K), float("inf"), dtype=kp.dtype, device=kp.device)  # left-out view's ratio
+        rest = torch.full((C, B, K), float("inf"), dtype=kp.dtype, device=kp.device)  # the others' worst ratio
+        for c in range(C):
+            others = kp.clone()
+            others[:, c, :, 2] = 0
+            points, ok = triangulate(others, cameras)  # (B, K, 3)
+            pix, z = project(points.reshape(1, -1, 3).expand(C, -1, -1), cameras)  # (C, B*K, 2)
+            gap = (pix.view(C, B, K, 2) - kp.permute(1, 0, 2, 3)[..., :2]).norm(dim=-1) / limit  # (C, B, K)
+            usable = ok[None] & (z.view(C, B, K) > 0) & seen.permute(1, 0, 2)
+            own[c] = torch.where(usable[c], gap[c], own[c])
+            gap = torch.where(usable, gap, torch.zeros_like(gap))
+            gap[c] = 0
+            rest[c] = torch.where(ok & seen[:, c], gap.amax(0), rest[c])
+        best_rest, best = rest.min(0)  # (B, K): the view whose leaving out leaves the most agreement
+        drop = (seen.sum(1) >= 3) & (best_rest <= 1) & (own.gather(0, best[None])[0] > 1)
+        if not drop.any():
+            break
+        mask = torch.zeros_like(seen).scatter_(1, best[:, None], drop[:, None])
+        kp[..., 2] = torch.where(mask, torch.zeros_like(kp[..., 2]), kp[..., 2])
+    return kp
 
 
 def lift_keypoints(keypoints: torch.Tensor, points: torch.Tensor, point_valid: torch.Tensor, cameras: Cameras,
@@ -896,7 +940,8 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     out_dir = Path(out_dir)
     model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
     cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
-    keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints)
+    keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
+                                     bcfg.keypoint_view_check_px)
     person = PersonPoints(session, cameras, bcfg, out_dir)
     fitter = BodyFitter(model, cameras, bcfg)
 

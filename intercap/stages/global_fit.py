@@ -458,7 +458,8 @@ class Observations:
 
         self.session, self.cfg = session, cfg
         self.device = cameras.K.device  # where the window's tensors go (the fit's device)
-        self.keypoints = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints)
+        self.keypoints = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
+                                        cfg.body.keypoint_view_check_px)
         self.person = PersonPoints(session, cameras, cfg.body, out_dir)
         self.tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
 

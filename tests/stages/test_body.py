@@ -314,3 +314,25 @@ def test_a_child_seen_by_one_camera_is_fitted_at_its_size(tmp_path, model):
     (out / "body" / "DONE.json").unlink()
     run_pipeline(session, out, cfg, stages=["body"], progress=False)
     assert np.allclose(np.load(out / "keypoints3d.npy"), keypoints, atol=1e-4)
+
+
+def test_a_view_whose_detections_disagree_with_the_others_is_dropped():
+    """Keypoints seen by four views, one view's detections of some joints 25 px off (at 320 px
+    width: 50 px at 640): those, and only those, lose their confidence; a joint two views see is
+    never checked (nothing to compare with)."""
+    session = Session.load(SAMPLE_SESSION)
+    cameras = Cameras.from_infos(session.cameras)
+    truth = torch.as_tensor(np.load(SAMPLE_SESSION / "ground_truth" / "keypoints3d.npy")[:2], dtype=torch.float32)
+    B, K = truth.shape[:2]
+    pix, _ = project(truth.reshape(1, -1, 3).expand(4, -1, -1), cameras)  # (4, B*K, 2)
+    keypoints = torch.cat([pix.view(4, B, K, 2).transpose(0, 1), torch.ones(B, 4, K, 1)], -1)  # (B, 4, K, 3)
+    keypoints[..., :2] += torch.randn(B, 4, K, 2, generator=torch.Generator().manual_seed(0))  # 1 px noise
+    wrong = torch.zeros(B, 4, K, dtype=torch.bool)
+    wrong[0, 2, :25] = True  # one view's whole body in frame 0
+    wrong[1, 0, [4, 7]] = True  # one view's wrists in frame 1
+    keypoints[..., 0] += 25.0 * wrong
+    keypoints[1, 2:, 30, 2] = 0  # keypoint 30 of frame 1: two views only, one of them off
+    keypoints[1, 0, 30, 0] += 25.0
+    checked = body.reject_disagreeing_views(keypoints, cameras, threshold_px=30.0)
+    dropped = (keypoints[..., 2] > 0) & (checked[..., 2] == 0)
+    assert torch.equal(dropped, wrong), (dropped ^ wrong).nonzero()

@@ -127,6 +127,7 @@ class BodyConfig:
     w_pose_prior: float = 10.0  # learned Gaussian mixture (CMU)
     w_joint_limits: float = 1.0e4
     w_bending: float = 1.0e3
+    w_ground: float = 1.0e6  # E_G: fitting vertices below the ground plane (prepare's), per vertex, as the global stage's
     w_hand_prior: float = 1.0e3
     w_shape: float = 100.0
     size_from_depth: bool = True  # template's stature from the 3D torso keypoints (children, tall people; one view)

@@ -471,10 +471,10 @@ class Phase:
 PHASES = (
     Phase("orient", ("global_orient", "transl"), ("orient_keypoints",), "orient_steps", "keypoint_rho_start"),
     Phase("pose", ("global_orient", "transl", "body_pose", "shape"),
-          ("keypoints", "pose_prior", "joint_limits", "bending", "shape"), "pose_steps", "keypoint_rho_start"),
+          ("keypoints", "pose_prior", "joint_limits", "bending", "shape", "ground"), "pose_steps", "keypoint_rho_start"),
     Phase("full", ("global_orient", "transl", "body_pose", "shape", "left_hand_pose", "right_hand_pose", "expression"),
           ("keypoints", "depth", "pose_prior", "joint_limits", "bending", "hand_prior", "shape", "expression",
-           "penetration"), "full_steps"),
+           "penetration", "ground"), "full_steps"),
 )
 
 
@@ -500,6 +500,7 @@ class BodyFitter:
         self.subset = model.fitting_subsample.to(cameras.K.device)
         self.spheres = BodySpheres.from_model(model)
         self.shape_center = 0.5  # the shape prior's centre: the average person until `size_template`
+        self.ground = None  # (point, normal) tensors: E_G keeps the body above the floor when set
 
     # -- size ---------------------------------------------------------------------------
     def torso_keypoints_3d(self, obs: BodyObservations) -> tuple[torch.Tensor, torch.Tensor]:
@@ -620,6 +621,9 @@ class BodyFitter:
             result["shape"] = priors.shape_prior(params.shape, center=self.shape_center)
         if "expression" in terms and self.cfg.fit_expression:
             result["expression"] = priors.expression_prior(params.expression)
+        if "ground" in terms and self.ground is not None:
+            point, normal = (x.to(out.vertices) for x in self.ground)
+            result["ground"] = losses.ground_penetration(out.vertices[:, :len(self.subset)], point, normal)
         if "penetration" in terms:
             result["penetration"] = losses.sphere_self_penetration(
                 self.spheres.centres(out.joints), self.spheres.radii.to(out.joints), self.spheres.pairs)
@@ -944,6 +948,12 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
                                      bcfg.keypoint_view_check_px)
     person = PersonPoints(session, cameras, bcfg, out_dir)
     fitter = BodyFitter(model, cameras, bcfg)
+    if (out_dir / "prepare" / "ground.json").exists():  # one view hides the legs: they must not sink through it
+        from intercap.stages.prepare import load_ground
+
+        ground = load_ground(out_dir)
+        fitter.ground = tuple(torch.as_tensor(x, dtype=torch.float32, device=cameras.K.device)
+                              for x in (ground.point, ground.normal))
 
     T = chunk.hi - chunk.lo
     frame_ids = session.frame_ids[chunk.lo:chunk.hi]

@@ -155,6 +155,31 @@ def test_fit_recovers_a_perturbed_pose(model, sample):
     assert 1000 * np.linalg.norm(hands - gt_hands, axis=-1).mean() < 20
 
 
+def test_ground_term_counts_only_vertices_below_the_floor(model, sample):
+    """E_G in the body fit (the floor from `prepare`): zero for the true pose standing on the floor,
+    the squared depth of the fitting vertices below it for the same pose 10 cm lower, pushing it up;
+    absent when no floor is set (the global stage has its own E_G and must not count it twice)."""
+    session = Session.load(sample)
+    cameras = Cameras.from_infos(session.cameras)
+    cfg = load_config().body
+    params, _ = truth(sample)
+    obs = observations(session, session.frame_ids[[2]], cfg, cameras)
+    fitter = body.BodyFitter(model, cameras, cfg)
+    assert "ground" not in fitter.energy_terms(params[2], obs, ("ground",))
+    fitter.ground = (torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+    standing = params[2].clone()
+    sunk = params[2].clone()
+    sunk.transl[:, 2] -= 0.10
+    sunk.transl.requires_grad_(True)
+    assert float(fitter.energy_terms(standing, obs, ("ground",))["ground"]) < 1e-5
+    energy = fitter.energy_terms(sunk, obs, ("ground",))["ground"]
+    with torch.no_grad():
+        depth = torch.relu(-model(sunk).vertices[0, fitter.subset, 2])
+    assert torch.allclose(energy, (depth**2).sum()[None], rtol=1e-4) and float(energy) > 1e-3
+    energy.sum().backward()
+    assert sunk.transl.grad[0, 2] < 0  # descent lifts it
+
+
 def test_missing_keypoint_views_and_depth_still_fit(model, sample):
     """Frame 2 with the keypoints of two views and the depth of a third removed fits from the rest."""
     session = Session.load(sample)

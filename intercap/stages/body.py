@@ -928,7 +928,9 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                     "or the detector's output in OUT/detect/)")
     figures = write_outputs(session, model, fitted, valid, reproj, seconds, out_dir, cfg.body, cameras,
                             fit_to_data_mm=gap.astype(np.float32), reinitialised=reinitialised)
-    return {**figures, "workers": len(chunks)}
+    # detections dropped for disagreeing with the other views (this run's batches; `reject_disagreeing_views`)
+    rejected = sum(int(p.get("keypoints_rejected", 0)) for p in parts)
+    return {**figures, "keypoints_rejected_by_views": rejected, "workers": len(chunks)}
 
 
 def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
@@ -1042,7 +1044,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
                  fit_to_data_mm=gap, pose_prior=prior, reinitialised=reinitialised,
                  **({} if sized is None else {"sized_shape": sized}))
     return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds,
-            "fit_to_data_mm": gap, "reinitialised": reinitialised}
+            "fit_to_data_mm": gap, "reinitialised": reinitialised, "keypoints_rejected": keypoint_source.rejected}
 
 
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")

@@ -88,19 +88,31 @@ def nearest_visible_vertices(points: torch.Tensor, vertices: torch.Tensor, visib
     """For each point (B, C, P, 3), the index (B, C, P) of the nearest vertex (B, N, 3) that its view
     sees (visible (B, C, N)); -1 where the view sees none. No gradient: E_D's correspondences.
     A k-d tree per frame and view (scipy): a dense distance matrix costs 20x more."""
+    B, C = visible.shape[:2]
+    every = torch.ones(points.shape[:3], dtype=torch.bool)
+    per_view = vertices[:, None].expand(B, C, *vertices.shape[1:])
+    return _nearest_per_view(points, every, per_view, visible, np.inf).to(points.device)
+
+
+def _nearest_per_view(queries: torch.Tensor, query_mask: torch.Tensor, targets: torch.Tensor,
+                      target_mask: torch.Tensor, max_distance: float) -> torch.Tensor:
+    """Per frame and view, the index (B, C, Q) of the nearest of the masked targets (B, C, T, 3) to
+    each masked query (B, C, Q, 3); -1 for unmasked queries, none within `max_distance`, or no
+    target. A k-d tree per frame and view (scipy): a dense distance matrix costs 20x more."""
     from scipy.spatial import cKDTree
 
-    B, C, P, _ = points.shape
-    pts = points.detach().cpu().numpy()
-    verts = vertices.detach().cpu().numpy()
-    seen = visible.cpu().numpy()
-    nearest = np.full((B, C, P), -1, np.int64)
+    B, C, Q, _ = queries.shape
+    qs, qm = queries.detach().cpu().numpy(), query_mask.cpu().numpy()
+    ts, tm = targets.detach().cpu().numpy(), target_mask.cpu().numpy()
+    nearest = np.full((B, C, Q), -1, np.int64)
     for b in range(B):
         for c in range(C):
-            ids = np.flatnonzero(seen[b, c])
-            if len(ids):
-                nearest[b, c] = ids[cKDTree(verts[b, ids]).query(pts[b, c])[1]]
-    return torch.from_numpy(nearest).to(points.device)
+            ids, have = np.flatnonzero(qm[b, c]), np.flatnonzero(tm[b, c])
+            if len(ids) and len(have):
+                distance, index = cKDTree(ts[b, c, have]).query(qs[b, c, ids], distance_upper_bound=max_distance)
+                found = np.isfinite(distance)
+                nearest[b, c, ids[found]] = have[index[found]]
+    return torch.from_numpy(nearest)
 
 
 def point_to_visible_vertices(
@@ -126,10 +138,17 @@ def point_to_visible_vertices(
     index = nearest.clamp(min=0).flatten(1)[..., None].expand(-1, -1, 3)  # (B, C*P, 3)
     v = vertices.gather(1, index).view(points.shape)
     n = normals.gather(1, index).view(points.shape)
-    offset = points - v
-    along = (offset * n).sum(-1, keepdim=True)
-    tangent = offset - along * n
-    squared = along[..., 0] ** 2 + tangent_weight * (tangent * tangent).sum(-1)  # (B, C, P)
+    return _robust_plane_distance(points - v, n, usable, scale, tangent_weight)
+
+
+def _robust_plane_distance(offset: torch.Tensor, normals: torch.Tensor, usable: torch.Tensor, scale: float,
+                           tangent_weight: float) -> torch.Tensor:
+    """E_D's per-view robust mean, (B, C, M, 3) offsets from the vertices with normals (broadcast)
+    -> (B,): rho(point-to-plane^2 + tangent_weight * in-plane^2) averaged over the usable (B, C, M),
+    summed over views, Geman-McClure with `scale` metres and scaled by scale^2."""
+    along = (offset * normals).sum(-1, keepdim=True)
+    tangent = offset - along * normals
+    squared = along[..., 0] ** 2 + tangent_weight * (tangent * tangent).sum(-1)  # (B, C, M)
     rho = squared / (squared + scale * scale) * usable
     return rho.sum(-1).div(usable.sum(-1).clamp(min=1)).sum(-1) * scale**2
 
@@ -140,20 +159,9 @@ def nearest_points(vertices: torch.Tensor, visible: torch.Tensor, points: torch.
     view's nearest segmented point (B, C, P, 3); -1 where the view sees it not, has no point, or the
     nearest is farther than `max_distance` (a part the object hides has no points of its own).
     No gradient: the model-to-data half of E_D's correspondences."""
-    from scipy.spatial import cKDTree
-
-    B, C, P, _ = points.shape
-    pts, ok = points.detach().cpu().numpy(), point_valid.cpu().numpy()
-    verts, seen = vertices.detach().cpu().numpy(), visible.cpu().numpy()
-    nearest = np.full((B, C, vertices.shape[1]), -1, np.int64)
-    for b in range(B):
-        for c in range(C):
-            ids, have = np.flatnonzero(seen[b, c]), np.flatnonzero(ok[b, c])
-            if len(ids) and len(have):
-                distance, index = cKDTree(pts[b, c, have]).query(verts[b, ids], distance_upper_bound=max_distance)
-                found = np.isfinite(distance)
-                nearest[b, c, ids[found]] = have[index[found]]
-    return torch.from_numpy(nearest).to(points.device)
+    B, C = visible.shape[:2]
+    per_view = vertices[:, None].expand(B, C, *vertices.shape[1:])
+    return _nearest_per_view(per_view, visible, points, point_valid, max_distance).to(points.device)
 
 
 def visible_vertices_to_points(
@@ -173,14 +181,8 @@ def visible_vertices_to_points(
     the distance is point-to-plane at the vertex plus `tangent_weight` times the in-plane offset
     (the points are a sparse subset); Geman-McClure with `scale` metres, scaled by scale^2."""
     B, C, N = nearest.shape
-    usable = nearest >= 0
     matched = torch.gather(points, 2, nearest.clamp(min=0)[..., None].expand(B, C, N, 3))  # (B, C, N, 3)
-    offset = matched - vertices[:, None]
-    along = (offset * normals[:, None]).sum(-1, keepdim=True)
-    tangent = offset - along * normals[:, None]
-    squared = along[..., 0] ** 2 + tangent_weight * (tangent * tangent).sum(-1)  # (B, C, N)
-    rho = squared / (squared + scale * scale) * usable
-    return rho.sum(-1).div(usable.sum(-1).clamp(min=1)).sum(-1) * scale**2
+    return _robust_plane_distance(matched - vertices[:, None], normals[:, None], nearest >= 0, scale, tangent_weight)
 
 
 def sphere_self_penetration(centres: torch.Tensor, radii: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:

@@ -142,6 +142,12 @@ class AnnyBody(BodyModel):
             "kvj,vd->kjd", folded, core.template_vertices[regressed].double()).to(self.dtype))
         self.register_buffer("coco_blend", torch.einsum(
             "kvj,avd->akjd", folded, core.blendshapes[:, regressed].double()).to(self.dtype))  # (A, K, J, 3)
+        # the blend shapes of `rest_state` as (A, ...) matrices: one matmul each
+        self.register_buffer("_coco_blend_flat", self.coco_blend.flatten(1), persistent=False)
+        self.register_buffer("_heads_blend", core.bone_heads_blendshapes.flatten(1).contiguous(),
+                             persistent=False)
+        self.register_buffer("_orientation_blend", core.bone_orientation_blendshapes.flatten(1).contiguous(),
+                             persistent=False)
 
     @staticmethod
     def _dense_weights(core) -> np.ndarray:
@@ -264,11 +270,7 @@ class AnnyBody(BodyModel):
         joints = out["bone_poses"][..., :3, 3]  # (B, J, 3)
         coco = torch.einsum("kv,bvd->bkd", self.coco_weights, vertices)  # (B, 23, 3)
         keypoints = self._openpose_keypoints(coco, joints, vertices[:, self.fingertip_vertex_ids])
-        return BodyOutput(
-            vertices=self.to_world(vertices, params),
-            joints=self.to_world(joints, params),
-            keypoints=self.to_world(keypoints, params),
-        )
+        return self.world_output(vertices, joints, keypoints, params)
 
     def rest_state(self, params: BodyParams, vertex_ids: torch.Tensor) -> "AnnyRest":
         """What `sparse_forward` computes from shape and expression alone (rest bone frames, rest
@@ -279,22 +281,37 @@ class AnnyBody(BodyModel):
         if not self._sparse_ok:
             return None
         core = self.core
-        pose = self._pose_matrices(params)
-        _, phenotype, local_changes, actions = core.get_tensor_inputs(pose, params.shape, None, params.expression)
+        phenotype = core._parse_parameter_kwargs(params.shape, core.phenotype_labels, 0.5, "phenotype_kwargs")
+        local_changes = core._parse_parameter_kwargs(None, core.local_change_labels, 0.0, "local_changes_kwargs")
+        actions = core._parse_parameter_kwargs(params.expression, core.facial_action_labels, 0.0, "facial_actions")
         coeffs = core._get_phenotype_blendshape_coefficients(phenotype, local_changes, actions)  # (B, A)
-        heads = core.template_bone_heads[None] + torch.einsum("ajd,ba->bjd", core.bone_heads_blendshapes, coeffs)
-        cross = core.bone_template_orientation_matrices[None] + torch.einsum(
-            "ba,akij->bkij", coeffs, core.bone_orientation_blendshapes)
+        B = coeffs.shape[0]
+        heads = core.template_bone_heads[None] + (coeffs @ self._heads_blend).view(B, -1, 3)
+        cross = core.bone_template_orientation_matrices[None] + (coeffs @ self._orientation_blend).view(B, -1, 3, 3)
         rest = torch.zeros(*heads.shape[:2], 4, 4, dtype=heads.dtype, device=heads.device)
         rest[..., :3, :3] = roma.special_procrustes(cross)
         rest[..., :3, 3] = heads
         rest[..., 3, 3] = 1.0
         if core.root_identity_orientation:
             rest[:, 0, :3, :3] = torch.eye(3, dtype=heads.dtype, device=heads.device)
+        ids, skin, template, blend = self._vertex_tables(vertex_ids)
+        rest_vertices = template[None] + (coeffs @ blend).view(B, -1, 3)
+        folded = self.coco_rest[None] + (coeffs @ self._coco_blend_flat).view(B, *self.coco_rest.shape)  # (B, K, J, 3)
+        return AnnyRest(vertex_ids, skin, rest, rest_vertices, folded)
+
+    def _vertex_tables(self, vertex_ids: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        """`rest_state`'s gathers for `vertex_ids` and the fingertips (ids, skinning weights, template
+        positions, blend shapes as an (A, n * 3) matrix), kept for the last vertex set asked: a fit
+        asks for the same one thousands of times, and the gather cost more than the blend."""
+        cached = getattr(self, "_vertex_tables_cache", None)
+        if cached is not None and cached[0].shape == vertex_ids.shape and torch.equal(cached[0], vertex_ids):
+            return cached[1]
+        core = self.core
         ids = torch.cat([vertex_ids.to(self.fingertip_vertex_ids), self.fingertip_vertex_ids])
-        rest_vertices = core.template_vertices[ids][None] + torch.einsum("avd,ba->bvd", core.blendshapes[:, ids], coeffs)
-        folded = self.coco_rest[None] + torch.einsum("ba,akjd->bkjd", coeffs, self.coco_blend)  # (B, K, J, 3)
-        return AnnyRest(vertex_ids, core.dense_vertex_bone_weights[ids], rest, rest_vertices, folded)
+        tables = (ids, core.dense_vertex_bone_weights[ids], core.template_vertices[ids],
+                  core.blendshapes[:, ids].reshape(core.blendshapes.shape[0], -1))
+        self._vertex_tables_cache = (vertex_ids.clone(), tables)
+        return tables
 
     def sparse_forward(self, params: BodyParams, vertex_ids: torch.Tensor, rest: "AnnyRest | None" = None) -> BodyOutput:
         """`forward` for fitting: keypoints and joints exactly as `forward`, but only the vertices
@@ -315,11 +332,7 @@ class AnnyBody(BodyModel):
         joints = bone_poses[..., :3, 3]
         n = len(rest.vertex_ids)
         keypoints = self._openpose_keypoints(coco, joints, vertices[:, n:])
-        return BodyOutput(
-            vertices=self.to_world(vertices[:, :n], params),
-            joints=self.to_world(joints, params),
-            keypoints=self.to_world(keypoints, params),
-        )
+        return self.world_output(vertices[:, :n], joints, keypoints, params)
 
     def _openpose_keypoints(self, coco: torch.Tensor, joints: torch.Tensor, tips: torch.Tensor) -> torch.Tensor:
         """(B, 67, 3) from the COCO+feet regression (B, 23, 3), bone heads (B, J, 3) and the ten

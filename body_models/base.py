@@ -172,6 +172,15 @@ class BodyModel(torch.nn.Module):
         rotation = axis_angle_to_matrix(params.global_orient)  # (B, 3, 3)
         return points @ rotation.transpose(1, 2) + params.transl[:, None, :]
 
+    @classmethod
+    def world_output(cls, vertices: torch.Tensor, joints: torch.Tensor, keypoints: torch.Tensor,
+                     params: BodyParams) -> BodyOutput:
+        """A BodyOutput of model-coordinate vertices, joints and keypoints moved to the world
+        together (one rotation and one product instead of three: fitting calls it thousands of times)."""
+        world = cls.to_world(torch.cat([vertices, joints, keypoints], 1), params)
+        vertices, joints, keypoints = world.split([vertices.shape[1], joints.shape[1], keypoints.shape[1]], 1)
+        return BodyOutput(vertices=vertices, joints=joints, keypoints=keypoints)
+
     def set_pose(self, params: BodyParams, joint: str, axis_angle: torch.Tensor) -> None:
         """Set one bone's local rotation in place, by the backend's bone name.
 

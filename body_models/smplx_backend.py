@@ -127,8 +127,4 @@ class SmplxBody(BodyModel):
         face = torch.zeros(batch, 70, 3, dtype=self.dtype, device=body.device)
         face[:, 17:68] = out.joints[:, self.face_ids]
         keypoints = torch.cat([out.joints[:, self.keypoint_ids], face], dim=1)  # (B, 137, 3)
-        return BodyOutput(
-            vertices=self.to_world(out.vertices, params),
-            joints=self.to_world(out.joints[:, :55], params),
-            keypoints=self.to_world(keypoints, params),
-        )
+        return self.world_output(out.vertices, out.joints[:, :55], keypoints, params)

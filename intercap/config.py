@@ -130,6 +130,7 @@ class BodyConfig:
     w_ground: float = 1.0e6  # E_G: fitting vertices below the ground plane (prepare's), per vertex, as the global stage's
     w_hand_prior: float = 1.0e3
     w_shape: float = 100.0
+    shared_shape: bool = True  # one phenotype per batch (one person; the global stage takes their mean anyway)
     size_from_depth: bool = True  # template's stature from the 3D torso keypoints (children, tall people; one view)
     w_expression: float = 10.0
     w_penetration: float = 1.0e5

@@ -516,12 +516,15 @@ def second_bone_swing(body_pose: torch.Tensor) -> torch.Tensor:
     return swing_twist_angles(in_frame(q, a.second_frames))[..., :2]
 
 
-def joint_limit_penalty(body_pose: torch.Tensor, joints: tuple[str, ...] | None = None) -> torch.Tensor:
+def joint_limit_penalty(body_pose: torch.Tensor, joints: tuple[str, ...] | None = None,
+                        excess: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 65, 3) anny body_pose -> (B,) sum of squared hinges (radians) beyond the anatomical ranges.
 
     Zero inside every range. Includes the swing of thigh/shin/arm/forearm second bones
-    beyond SECOND_BONE_SWING. `joints` restricts it to some BODY_JOINTS names (e.g. ('knee',))."""
-    excess = joint_limit_excess(body_pose)
+    beyond SECOND_BONE_SWING. `joints` restricts it to some BODY_JOINTS names (e.g. ('knee',)).
+    `excess`: `joint_limit_excess(body_pose)` when the caller has it (E_L and E_bend share it)."""
+    if excess is None:
+        excess = joint_limit_excess(body_pose)
     if joints is not None:
         a = _anatomy_like(body_pose)
         keep = torch.tensor([j in joints for j in a.row_joints], device=body_pose.device)
@@ -557,10 +560,10 @@ def body_pose_from_joint_angles(
     return pose
 
 
-def extreme_bending(body_pose: torch.Tensor) -> torch.Tensor:
+def extreme_bending(body_pose: torch.Tensor, excess: torch.Tensor | None = None) -> torch.Tensor:
     """(B,) SMPLify-X's elbow/knee term: squared hinge of elbows and knees bent beyond range,
     hyperextended or bent sideways (the joint-limit penalty restricted to those joints)."""
-    return joint_limit_penalty(body_pose, EXTREME_BENDING_JOINTS)
+    return joint_limit_penalty(body_pose, EXTREME_BENDING_JOINTS, excess)
 
 
 # ---------------------------------------------------------------------------

@@ -610,10 +610,11 @@ class BodyFitter:
             result["depth"] = depth * torch.where(one_view, self.cfg.one_view_depth_factor, 1.0)
         if "pose_prior" in terms:
             result["pose_prior"] = priors.learned_pose_prior(params.body_pose)
+        excess = priors.joint_limit_excess(params.body_pose) if {"joint_limits", "bending"} & set(terms) else None
         if "joint_limits" in terms:
-            result["joint_limits"] = priors.joint_limit_penalty(params.body_pose)
+            result["joint_limits"] = priors.joint_limit_penalty(params.body_pose, excess=excess)
         if "bending" in terms:
-            result["bending"] = priors.extreme_bending(params.body_pose)
+            result["bending"] = priors.extreme_bending(params.body_pose, excess)
         if "hand_prior" in terms:
             result["hand_prior"] = (priors.hand_pose_prior(params.left_hand_pose, "L")
                                + priors.hand_pose_prior(params.right_hand_pose, "R"))
@@ -659,8 +660,10 @@ class BodyFitter:
             leaves = {n: getattr(params, n).detach().clone() for n in names}
             if "body_pose" in leaves:
                 leaves["body_pose"] = params.body_pose[:, free].detach().clone()
+            shared = "shape" in leaves and self.cfg.shared_shape
             if "shape" in leaves:  # optimised as a logit: anny's phenotypes extrapolate wildly outside [0, 1]
-                leaves["shape"] = torch.logit(params.shape.detach().clamp(SHAPE_EPS, 1 - SHAPE_EPS))
+                shape = params.shape.detach().mean(0, keepdim=True) if shared else params.shape.detach()
+                leaves["shape"] = torch.logit(shape.clamp(SHAPE_EPS, 1 - SHAPE_EPS))
             state = {"matches": None, "rest": None}
             if "shape" not in leaves and "expression" not in leaves:  # the rest pose does not move: computed once
                 with torch.no_grad():
@@ -670,15 +673,20 @@ class BodyFitter:
                 values = {n: leaves.get(n, getattr(params, n).detach()) for n in
                           ("shape", "global_orient", "transl", "left_hand_pose", "right_hand_pose", "expression")}
                 if "shape" in leaves:
-                    values["shape"] = torch.sigmoid(leaves["shape"])
+                    values["shape"] = torch.sigmoid(leaves["shape"]).expand(params.batch_size, -1)
                 body_pose = params.body_pose.detach()
                 if "body_pose" in leaves:
                     body_pose = body_pose.index_copy(1, free, leaves["body_pose"])
                 return BodyParams(body_pose=body_pose, **values)
 
             def energy() -> torch.Tensor:
-                terms = self.energy_terms(current(), obs, phase.terms, state["matches"],
-                                          getattr(self.cfg, phase.rho_key), rest=state["rest"])
+                now = current()
+                rest = state["rest"]
+                if shared:  # one phenotype for the batch: its rest state once, not once per frame
+                    rest = self.model.rest_state(now[0], self.subset)
+                    rest = rest and rest.select(torch.zeros(now.batch_size, dtype=torch.long, device=now.shape.device))
+                terms = self.energy_terms(now, obs, phase.terms, state["matches"],
+                                          getattr(self.cfg, phase.rho_key), rest=rest)
                 return sum(self.weight(k) * v.sum() for k, v in terms.items())
 
             def refresh(step, value):

@@ -128,9 +128,11 @@ class BodyConfig:
     w_joint_limits: float = 1.0e4
     w_bending: float = 1.0e3
     w_ground: float = 1.0e6  # E_G: fitting vertices below the ground plane (prepare's), per vertex, as the global stage's
+    w_ground_support: float = 1.0e5  # the body's lowest points onto the floor where fewer than two views see the feet
     w_hand_prior: float = 1.0e3
     w_shape: float = 100.0
-    shared_shape: bool = True  # one phenotype per batch (one person; the global stage takes their mean anyway)
+    shared_shape: bool = True  # one phenotype per batch whose frames all have >= 2 keypoint views (one person; 10-20 %
+    # faster); with fewer views each frame its own: one view's stooping frames would bend the upright ones' shape
     size_from_depth: bool = True  # template's stature from the 3D torso keypoints (children, tall people; one view)
     w_expression: float = 10.0
     w_penetration: float = 1.0e5

@@ -184,7 +184,10 @@ def main(argv=None) -> None:
 
     T = result.metrics.get("frames") or 1
     threads = os.environ.get("OMP_NUM_THREADS", "default")
-    print(f"\nwhole pipeline on {tag}: {T} frames, {args.cameras} views, OMP_NUM_THREADS={threads}, "
+    from intercap.session import Session
+
+    views = len(Session.load(session).cameras)
+    print(f"\nwhole pipeline on {tag}: {T} frames, {views} views, OMP_NUM_THREADS={threads}, "
           f"{os.cpu_count()} CPUs seen (session generated in {synth_s:.0f} s)")
     print(f"{'stage':10s} {'s/frame':>8s} {'seconds':>8s}")
     for stage, figures in metrics.items():

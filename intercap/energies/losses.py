@@ -243,6 +243,17 @@ def ground_penetration(points: torch.Tensor, ground_point: torch.Tensor, ground_
     return torch.relu(-height).pow(2).sum(-1)
 
 
+def ground_support(points: torch.Tensor, ground_point: torch.Tensor, ground_normal: torch.Tensor,
+                   lowest: int = 5, reach_m: float = 0.3) -> torch.Tensor:
+    """E_S: a person handling objects stands on the floor. Per frame (W,), the height of the body's
+    lowest points above the ground plane squared (mean of the `lowest` lowest of `points` (W, N, 3),
+    metres^2): zero on or below the floor (E_G's side), and zero when higher than `reach_m` (sitting on
+    something, on a step, in the air: not a hovering fit)."""
+    height = (points - ground_point) @ ground_normal  # (W, N)
+    bottom = torch.topk(height, min(lowest, height.shape[-1]), dim=-1, largest=False).values.mean(-1)
+    return torch.where(bottom < reach_m, torch.relu(bottom).pow(2), torch.zeros_like(bottom))
+
+
 def vertex_acceleration(points: torch.Tensor, fps: float) -> torch.Tensor:
     """E_A on the object's points, and the plain smoothness term on body vertices: per frame the
     mean squared acceleration of points (W, M, 3) by second differences -> (W,), (m/s^2)^2; the

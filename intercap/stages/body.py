@@ -57,6 +57,8 @@ TORSO_KEYPOINTS = [BODY_25.index(n) for n in
 # tilt of the whole body.
 ORIENT_KEYPOINTS = TORSO_KEYPOINTS + [BODY_25.index(n) for n in
                                       ("right_knee", "left_knee", "right_ankle", "left_ankle")]
+FOOT_KEYPOINTS = [BODY_25.index(n) for n in ("right_ankle", "left_ankle", "left_big_toe", "left_small_toe",
+                                             "left_heel", "right_big_toe", "right_small_toe", "right_heel")]
 
 
 # ---------------------------------------------------------------------------
@@ -236,6 +238,17 @@ class PersonPoints:
 def keypoint_views(keypoints: torch.Tensor, cfg) -> torch.Tensor:
     """(B,) per frame, the views with >= min_body_keypoints confident body keypoints."""
     return ((keypoints[:, :, :NUM_BODY, 2] > 0).sum(-1) >= cfg.min_body_keypoints).sum(-1)
+
+
+def foot_views(keypoints: torch.Tensor, min_keypoints: int = 2) -> torch.Tensor:
+    """(B,) per frame, the views with >= `min_keypoints` confident foot keypoints (ankles, heels, toes)."""
+    return ((keypoints[:, :, FOOT_KEYPOINTS, 2] > 0).sum(-1) >= min_keypoints).sum(-1)
+
+
+def shares_shape(obs: BodyObservations, cfg) -> bool:
+    """Whether a batch is fitted with one phenotype (`body.shared_shape`): only when two or more views see
+    every frame; from one view a stoop is as well explained by a shorter body as by a bent one."""
+    return bool(cfg.shared_shape) and bool((keypoint_views(obs.keypoints, cfg) >= 2).all())
 
 
 def usable_frames(keypoints: torch.Tensor, point_valid: torch.Tensor, cfg) -> torch.Tensor:
@@ -471,10 +484,11 @@ class Phase:
 PHASES = (
     Phase("orient", ("global_orient", "transl"), ("orient_keypoints",), "orient_steps", "keypoint_rho_start"),
     Phase("pose", ("global_orient", "transl", "body_pose", "shape"),
-          ("keypoints", "pose_prior", "joint_limits", "bending", "shape", "ground"), "pose_steps", "keypoint_rho_start"),
+          ("keypoints", "pose_prior", "joint_limits", "bending", "shape", "ground", "ground_support"), "pose_steps",
+          "keypoint_rho_start"),
     Phase("full", ("global_orient", "transl", "body_pose", "shape", "left_hand_pose", "right_hand_pose", "expression"),
           ("keypoints", "depth", "pose_prior", "joint_limits", "bending", "hand_prior", "shape", "expression",
-           "penetration", "ground"), "full_steps"),
+           "penetration", "ground", "ground_support"), "full_steps"),
 )
 
 
@@ -622,9 +636,14 @@ class BodyFitter:
             result["shape"] = priors.shape_prior(params.shape, center=self.shape_center)
         if "expression" in terms and self.cfg.fit_expression:
             result["expression"] = priors.expression_prior(params.expression)
-        if "ground" in terms and self.ground is not None:
+        if self.ground is not None and {"ground", "ground_support"} & set(terms):
             point, normal = (x.to(out.vertices) for x in self.ground)
-            result["ground"] = losses.ground_penetration(out.vertices[:, :len(self.subset)], point, normal)
+            vertices = out.vertices[:, :len(self.subset)]
+            if "ground" in terms:
+                result["ground"] = losses.ground_penetration(vertices, point, normal)
+            if "ground_support" in terms and self.cfg.w_ground_support > 0:  # where fewer than two views see the feet
+                unseen = (foot_views(obs.keypoints) < 2).to(vertices.dtype)
+                result["ground_support"] = losses.ground_support(vertices, point, normal) * unseen
         if "penetration" in terms:
             result["penetration"] = losses.sphere_self_penetration(
                 self.spheres.centres(out.joints), self.spheres.radii.to(out.joints), self.spheres.pairs)
@@ -650,20 +669,36 @@ class BodyFitter:
                                                     self.cfg.depth_model_to_data_max_m)
         return nearest, normals[:, self.subset], to_vertices
 
-    def fit(self, obs: BodyObservations, init: BodyParams, monitor=None) -> tuple[BodyParams, dict]:
-        """Run PHASES from `init`; returns the fitted parameters and per-frame figures."""
+    def fit(self, obs: BodyObservations, init: BodyParams, monitor=None,
+            shape_groups: torch.Tensor | None = None) -> tuple[BodyParams, dict]:
+        """Run PHASES from `init`; returns the fitted parameters and per-frame figures.
+
+        `shape_groups` (B,) long: frames with the same number share one phenotype while shape is free
+        (its rest state is then computed once per group and evaluation, not once per frame). Default:
+        the whole batch one group where `shares_shape`, else each frame its own. A
+        batch of competing starts (`refit_from_evidence`) gives each start its own group: a wrong start
+        must not bend the shape of the others."""
         params = init.clone()
         free = self.free_bones
+        B = params.batch_size
+        device = params.shape.device
+        if shape_groups is None:
+            shape_groups = (torch.zeros(B, dtype=torch.long, device=device) if shares_shape(obs, self.cfg)
+                            else torch.arange(B, device=device))
+        groups = int(shape_groups.max()) + 1
+        first = torch.full((groups,), B, device=device).scatter_reduce(0, shape_groups, torch.arange(B, device=device),
+                                                                       "amin")  # a frame of each group
         stats = {}
         for phase in PHASES:
             names = [n for n in phase.variables if n != "expression" or self.cfg.fit_expression]
             leaves = {n: getattr(params, n).detach().clone() for n in names}
             if "body_pose" in leaves:
                 leaves["body_pose"] = params.body_pose[:, free].detach().clone()
-            shared = "shape" in leaves and self.cfg.shared_shape
-            if "shape" in leaves:  # optimised as a logit: anny's phenotypes extrapolate wildly outside [0, 1]
-                shape = params.shape.detach().mean(0, keepdim=True) if shared else params.shape.detach()
-                leaves["shape"] = torch.logit(shape.clamp(SHAPE_EPS, 1 - SHAPE_EPS))
+            if "shape" in leaves:  # per group, optimised as a logit: anny's phenotypes extrapolate wildly outside [0, 1]
+                count = torch.bincount(shape_groups, minlength=groups)[:, None]
+                mean = torch.zeros(groups, params.shape.shape[1], dtype=params.shape.dtype, device=device)
+                mean = mean.index_add(0, shape_groups, params.shape.detach()) / count
+                leaves["shape"] = torch.logit(mean.clamp(SHAPE_EPS, 1 - SHAPE_EPS))
             state = {"matches": None, "rest": None}
             if "shape" not in leaves and "expression" not in leaves:  # the rest pose does not move: computed once
                 with torch.no_grad():
@@ -673,7 +708,7 @@ class BodyFitter:
                 values = {n: leaves.get(n, getattr(params, n).detach()) for n in
                           ("shape", "global_orient", "transl", "left_hand_pose", "right_hand_pose", "expression")}
                 if "shape" in leaves:
-                    values["shape"] = torch.sigmoid(leaves["shape"]).expand(params.batch_size, -1)
+                    values["shape"] = torch.sigmoid(leaves["shape"])[shape_groups]
                 body_pose = params.body_pose.detach()
                 if "body_pose" in leaves:
                     body_pose = body_pose.index_copy(1, free, leaves["body_pose"])
@@ -682,9 +717,9 @@ class BodyFitter:
             def energy() -> torch.Tensor:
                 now = current()
                 rest = state["rest"]
-                if shared:  # one phenotype for the batch: its rest state once, not once per frame
-                    rest = self.model.rest_state(now[0], self.subset)
-                    rest = rest and rest.select(torch.zeros(now.batch_size, dtype=torch.long, device=now.shape.device))
+                if rest is None and "expression" not in leaves and groups < B:  # one rest state per group
+                    rest = self.model.rest_state(now[first], self.subset)
+                    rest = rest and rest.select(shape_groups)
                 terms = self.energy_terms(now, obs, phase.terms, state["matches"],
                                           getattr(self.cfg, phase.rho_key), rest=rest)
                 return sum(self.weight(k) * v.sum() for k, v in terms.items())
@@ -799,8 +834,11 @@ def refit_from_evidence(fitter: BodyFitter, obs: BodyObservations, params: BodyP
             turned = bent.clone()
             turn_about(turned, axis_angle_to_matrix(up * np.pi), centre)
             starts.append(turned)
-    every = sub.select(np.tile(np.arange(n), len(starts)))  # all starts fitted as one batch
-    fitted, stats = fitter.fit(every, BodyParams.cat(starts))
+    every = sub.select(np.tile(np.arange(n), len(starts)))  # all starts fitted as one batch, a phenotype each
+    groups = None  # per frame
+    if shares_shape(every, fitter.cfg):  # one phenotype per start, not one for all
+        groups = torch.arange(len(starts), device=every.keypoints.device).repeat_interleave(n)
+    fitted, stats = fitter.fit(every, BodyParams.cat(starts), shape_groups=groups)
     candidates = np.concatenate([energy[idx][None], frame_energy(fitter, stats["terms"]).reshape(len(starts), n)])
     candidates = np.nan_to_num(candidates, nan=np.inf)
     if gap is not None:

@@ -155,16 +155,20 @@ def test_fit_recovers_a_perturbed_pose(model, sample):
     assert 1000 * np.linalg.norm(hands - gt_hands, axis=-1).mean() < 20
 
 
-def test_ground_term_counts_only_vertices_below_the_floor(model, sample):
-    """E_G in the body fit (the floor from `prepare`): zero for the true pose standing on the floor,
-    the squared depth of the fitting vertices below it for the same pose 10 cm lower, pushing it up;
-    absent when no floor is set (the global stage has its own E_G and must not count it twice)."""
+def frame_2_fitter(model, sample) -> tuple[BodyParams, body.BodyObservations, body.BodyFitter]:
+    """(true params, frame 2's observations, a body fitter with no floor) of the sample."""
     session = Session.load(sample)
     cameras = Cameras.from_infos(session.cameras)
     cfg = load_config().body
     params, _ = truth(sample)
-    obs = observations(session, session.frame_ids[[2]], cfg, cameras)
-    fitter = body.BodyFitter(model, cameras, cfg)
+    return params, observations(session, session.frame_ids[[2]], cfg, cameras), body.BodyFitter(model, cameras, cfg)
+
+
+def test_ground_term_counts_only_vertices_below_the_floor(model, sample):
+    """E_G in the body fit (the floor from `prepare`): zero for the true pose standing on the floor,
+    the squared depth of the fitting vertices below it for the same pose 10 cm lower, pushing it up;
+    absent when no floor is set (the global stage has its own E_G and must not count it twice)."""
+    params, obs, fitter = frame_2_fitter(model, sample)
     assert "ground" not in fitter.energy_terms(params[2], obs, ("ground",))
     fitter.ground = (torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
     standing = params[2].clone()
@@ -178,6 +182,34 @@ def test_ground_term_counts_only_vertices_below_the_floor(model, sample):
     assert torch.allclose(energy, (depth**2).sum()[None], rtol=1e-4) and float(energy) > 1e-3
     energy.sum().backward()
     assert sunk.transl.grad[0, 2] < 0  # descent lifts it
+
+
+def test_ground_support_pulls_a_hovering_body_down_where_the_feet_are_unseen(model, sample):
+    """E_S: the true pose lifted 10 cm scores its lowest points' height squared, and descent lowers it,
+    but only where fewer than two views see the feet (four do in the sample: then zero); the truth on
+    the floor and a body 0.5 m up (beyond reach: on a step, jumping) score nothing."""
+    params, obs, fitter = frame_2_fitter(model, sample)
+    fitter.ground = (torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
+
+    def support(lift: float, grad: bool = False) -> torch.Tensor:
+        lifted = params[2].clone()
+        lifted.transl[:, 2] += lift
+        lifted.transl.requires_grad_(grad)
+        energy = fitter.energy_terms(lifted, obs, ("ground_support",))["ground_support"]
+        if grad:
+            energy.sum().backward()
+            return energy.detach(), lifted.transl.grad
+        return energy
+
+    assert int(body.foot_views(obs.keypoints)[0]) == 4
+    assert float(support(0.10)) == 0.0  # the feet are seen: their keypoints place them
+    obs.keypoints[:, 1:, body.FOOT_KEYPOINTS] = 0  # one view left sees the feet
+    assert int(body.foot_views(obs.keypoints)[0]) == 1
+    assert float(support(0.0)) < 0.02**2
+    energy, grad = support(0.10, grad=True)
+    assert 0.09**2 < float(energy) < 0.13**2
+    assert grad[0, 2] > 0  # descent lowers it
+    assert float(support(0.5)) == 0.0
 
 
 def test_missing_keypoint_views_and_depth_still_fit(model, sample):

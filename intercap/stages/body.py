@@ -245,6 +245,14 @@ def foot_views(keypoints: torch.Tensor, min_keypoints: int = 2) -> torch.Tensor:
     return ((keypoints[:, :, FOOT_KEYPOINTS, 2] > 0).sum(-1) >= min_keypoints).sum(-1)
 
 
+def unseen_feet_support(vertices: torch.Tensor, keypoints: torch.Tensor, ground_point: torch.Tensor,
+                        ground_normal: torch.Tensor) -> torch.Tensor:
+    """(B,) E_S (`losses.ground_support`) on the frames where fewer than two views see the feet; where
+    two do, their keypoints place the feet and the term is zero. Shared by the body and global stages."""
+    unseen = (foot_views(keypoints) < 2).to(vertices.dtype)
+    return losses.ground_support(vertices, ground_point, ground_normal) * unseen
+
+
 def shares_shape(obs: BodyObservations, cfg) -> bool:
     """Whether a batch is fitted with one phenotype (`body.shared_shape`): only when two or more views see
     every frame; from one view a stoop is as well explained by a shorter body as by a bent one."""
@@ -641,9 +649,8 @@ class BodyFitter:
             vertices = out.vertices[:, :len(self.subset)]
             if "ground" in terms:
                 result["ground"] = losses.ground_penetration(vertices, point, normal)
-            if "ground_support" in terms and self.cfg.w_ground_support > 0:  # where fewer than two views see the feet
-                unseen = (foot_views(obs.keypoints) < 2).to(vertices.dtype)
-                result["ground_support"] = losses.ground_support(vertices, point, normal) * unseen
+            if "ground_support" in terms and self.cfg.w_ground_support > 0:
+                result["ground_support"] = unseen_feet_support(vertices, obs.keypoints, point, normal)
         if "penetration" in terms:
             result["penetration"] = losses.sphere_self_penetration(
                 self.spheres.centres(out.joints), self.spheres.radii.to(out.joints), self.spheres.pairs)

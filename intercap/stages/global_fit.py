@@ -56,8 +56,8 @@ from intercap.stages.body import (
     KeypointSource,
     PersonPoints,
     draw_overlay,
-    foot_views,
     save_body_results,
+    unseen_feet_support,
 )
 
 log = logging.getLogger(__name__)
@@ -367,9 +367,8 @@ class GlobalFitter:
             point, normal = (x.to(vertices) for x in self.ground)
             terms["ground"] = (losses.ground_penetration(vertices, point, normal)
                                + losses.ground_penetration(object_world, point, normal))
-            if self.bcfg.w_ground_support > 0:  # E_S as in the body stage: where fewer than two views see the feet
-                unseen = (foot_views(data.obs.keypoints) < 2).to(vertices.dtype)
-                terms["body_ground_support"] = losses.ground_support(vertices, point, normal) * unseen
+            if self.bcfg.w_ground_support > 0:  # E_S as in the body stage
+                terms["body_ground_support"] = unseen_feet_support(vertices, data.obs.keypoints, point, normal)
         if self.gravity is not None and data.flight is not None and bool((data.flight >= 0).any()):
             times = torch.arange(len(centre), dtype=centre.dtype, device=centre.device) / self.fps
             terms["flight"] = losses.flight_parabola(centre, data.flight, times, self.gravity.to(centre))

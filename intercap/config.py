@@ -36,9 +36,9 @@ class PrepareConfig:
     plane_iterations: int = 2000
     ground_frames: int = 5  # frames (spread over the sequence) fused for the ground fit
     calib_frames: int = 3  # frames (spread over the sequence) used for the ICP check
-    icp_max_distance_m: float = 0.05
-    calib_warn_mm: float = 8.0  # a pair is flagged when its observable correction exceeds this (or calib_warn_deg)
-    calib_warn_deg: float = 0.25
+    icp_max_distance_m: float = 0.10
+    calib_warn_mm: float = 6.0  # a pair is flagged when its observable correction exceeds this (or calib_warn_deg)
+    calib_warn_deg: float = 0.3
     calib_k_sigma: float = 4.0  # ... and also calib_k_sigma standard deviations of itself (clear evidence only)
     save_clouds: bool = True  # write one fused .ply per checked frame for inspection
     seed: int = 0

@@ -5,32 +5,42 @@ from conftest import FLOOR_NORMAL, FLOOR_POINT, floor_basis
 from intercap.calib import check_calibration, format_agreement, neighbour_pairs
 
 
-def box_surface(rng, center, size, yaw, n):
-    """n points on the 5 visible faces (no bottom) of a box standing on z=0."""
+def box_surface(rng, center, size, yaw, n, with_normals=False):
+    """n points on the 5 visible faces (no bottom) of a box standing on z=0 (and their
+    outward face normals)."""
     pts = rng.uniform(-0.5, 0.5, size=(n, 3)) * size
     face = rng.integers(0, 5, n)
     axis = np.array([0, 0, 1, 1, 2])[face]
     sign = np.array([-1, 1, -1, 1, 1])[face]
     pts[np.arange(n), axis] = sign * size[axis] / 2
+    normals = np.zeros((n, 3))
+    normals[np.arange(n), axis] = sign
     c, s = np.cos(yaw), np.sin(yaw)
     R = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-    return pts @ R.T + center + [0, 0, size[2] / 2]
+    pts = pts @ R.T + center + [0, 0, size[2] / 2]
+    return (pts, normals @ R.T) if with_normals else pts
+
+
+TWO_VIEW_CENTERS = np.array([[-2.0, 0.0, 1.5], [2.0, 0.0, 1.5]])
 
 
 def two_view_scene(seed=0, noise=0.001):
-    """A floor with four boxes, sampled twice independently; view a sees x < 0.5,
+    """A floor with four boxes, sampled twice independently, each time only the box faces turned
+    to that view (a depth camera sees a surface from its own side); view a sees x < 0.5,
     view b sees x > -0.5, so they overlap in a 1 m band holding two boxes."""
     rng = np.random.default_rng(seed)
     boxes = [([-0.2, 0.3, 0], [0.5, 0.4, 0.6], 0.3), ([0.25, -0.4, 0], [0.4, 0.6, 0.4], -0.5),
              ([-1.0, -0.2, 0], [0.5, 0.5, 0.5], 0.1), ([1.0, 0.5, 0], [0.6, 0.4, 0.8], 0.8)]
 
-    def sample():
-        floor = np.column_stack([rng.uniform(-1.6, 1.6, 60000), rng.uniform(-1.2, 1.2, 60000), np.zeros(60000)])
-        parts = [floor] + [box_surface(rng, np.array(c), np.array(s), y, 15000) for c, s, y in boxes]
+    def sample(camera):
+        parts = [np.column_stack([rng.uniform(-1.6, 1.6, 60000), rng.uniform(-1.2, 1.2, 60000), np.zeros(60000)])]
+        for c, s, y in boxes:
+            pts, n = box_surface(rng, np.array(c), np.array(s), y, 15000, with_normals=True)
+            parts.append(pts[((camera - pts) * n).sum(axis=1) > 0])
         pts = np.concatenate(parts)
         return pts + rng.normal(0, noise, pts.shape)
 
-    a, b = sample(), sample()
+    a, b = sample(TWO_VIEW_CENTERS[0]), sample(TWO_VIEW_CENTERS[1])
     return a[a[:, 0] < 0.5], b[b[:, 0] > -0.5]
 
 
@@ -43,7 +53,7 @@ def rotation(axis, deg):
 
 def test_check_calibration_aligned_and_drifted():
     a, b = two_view_scene()
-    centers = np.array([[-2.0, 0.0, 1.5], [2.0, 0.0, 1.5]])
+    centers = TWO_VIEW_CENTERS
     good = check_calibration([a, b], ["left", "right"], centers)
     assert len(good) == 1 and (good[0].cam_a, good[0].cam_b) == ("left", "right")
     g = good[0]
@@ -62,10 +72,11 @@ def test_check_calibration_aligned_and_drifted():
           f"{bad.correction_translation_mm:.2f} mm, median {bad.median_distance_mm:.2f} mm, "
           f"icp rmse {bad.icp_rmse_mm:.2f} mm")
     assert abs(bad.correction_translation_mm - 20.0) < 3.0
-    assert abs(bad.correction_rotation_deg - 1.5) < 0.3
-    # the correction undoes the drift: applied to the drifted cloud it restores the original
-    fixed = drifted @ bad.correction[:3, :3].T + bad.correction[:3, 3]
-    assert np.abs(fixed - a).max() < 0.005
+    # the turn about the vertical shows only on box faces both views see (their sides along the
+    # baseline, which do not hold it), so at least the tilt (0.88 deg, held by the floor) is found
+    assert 0.8 < bad.correction_rotation_deg < 1.8 and bad.flagged
+    # the correction undoes the drift where it is observed: the clouds agree to their noise again
+    assert bad.icp_rmse_mm < 2.0 and g.icp_rmse_mm < 2.0
     table = format_agreement(good + [bad], warn_mm=10.0)
     print(table)
     lines = table.splitlines()
@@ -152,13 +163,7 @@ def ring_scene_views(seed=0, frames=2, noise=0.002):
         floor = np.column_stack([rng.uniform(-2.5, 2.5, (20000, 2)), np.zeros(20000)])
         parts, normals = [floor], [np.tile([0, 0, 1.0], (20000, 1))]
         for c, s, y in boxes:
-            pts = box_surface(rng, np.array(c), np.array(s), y, 6000)
-            local = (pts - np.array(c) - [0, 0, s[2] / 2]) @ np.array(
-                [[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]])
-            n = np.zeros_like(local)
-            k = np.argmax(np.abs(local) / (np.array(s) / 2), axis=1)
-            n[np.arange(len(n)), k] = np.sign(local[np.arange(len(n)), k])
-            n = n @ np.array([[np.cos(y), -np.sin(y), 0], [np.sin(y), np.cos(y), 0], [0, 0, 1]]).T
+            pts, n = box_surface(rng, np.array(c), np.array(s), y, 6000, with_normals=True)
             parts.append(pts), normals.append(n)
         t = rng.uniform(0, 2 * np.pi, 8000)
         radial = np.column_stack([np.cos(t), np.sin(t), np.zeros_like(t)])
@@ -198,3 +203,50 @@ def test_ring_exact_not_flagged_drifted_camera_named():
     flagged = {(r.cam_a, r.cam_b) for r in drifted if r.flagged}
     assert flagged == {("c1", "c2"), ("c2", "c3")}
     assert suspect_cameras(drifted) == ["c2"]
+
+
+def test_two_sides_of_a_thin_part_are_not_matched():
+    """Two cameras facing each other across a 3 cm board (an arm, a box wall seen from both
+    sides): each sees only its own face. Those faces lie within the matching distance, but
+    their normals face opposite ways, so they are not taken as one surface: no false alarm."""
+    rng = np.random.default_rng(3)
+    centers = np.array([[-2.5, 0.0, 1.5], [2.5, 0.0, 1.5]])
+
+    def view(camera, side):
+        floor = np.column_stack([rng.uniform(-1.5, 1.5, (30000, 2)), np.zeros(30000)])
+        board = np.column_stack([np.full(20000, side * 0.015), rng.uniform(-0.6, 0.6, 20000),
+                                 rng.uniform(0.0, 1.6, 20000)])
+        box, n = box_surface(rng, np.array([0.0, 1.0, 0.0]), np.array([0.4, 0.4, 0.5]), 0.6, 8000, with_normals=True)
+        pts = np.concatenate([floor, board, box[((camera - box) * n).sum(axis=1) > 0]])
+        rays = (pts - camera) / np.linalg.norm(pts - camera, axis=1, keepdims=True)
+        return pts + rays * rng.normal(0, 0.002, (len(pts), 1))
+
+    result = check_calibration([view(centers[0], -1), view(centers[1], 1)], ["a", "b"], centers)[0]
+    print(format_agreement([result]))
+    assert result.overlap_points > 1000
+    assert result.correction_translation_mm < 3.0 and result.correction_rotation_deg < 0.2 and not result.flagged
+
+
+def test_sample_session_exact_not_flagged_and_a_bumped_camera_named():
+    """The committed sample's rig as prepare checks it (3 frames: floor, walls, table, person):
+    its exact calibration raises no flag, and camera 2 turned by 0.5 deg about its own centre
+    and moved 10 mm (a bumped camera) is flagged in both its pairs and named alone."""
+    from conftest import SAMPLE_SESSION
+
+    from intercap.calib.alignment import suspect_cameras
+    from intercap.config import PrepareConfig
+    from tools.bench_calibration_check import drift_transform, load_views, run_check
+
+    cfg = PrepareConfig()
+    session, centers, per_view = load_views(SAMPLE_SESSION, cfg.calib_frames)
+    names = [c.name for c in session.cameras]
+    exact = run_check(per_view, names, centers, cfg)
+    print(format_agreement(exact))
+    assert not any(r.flagged for r in exact)
+    assert max(r.correction_translation_mm for r in exact) < 5.0
+    T = drift_transform(0.5, 10.0, seed=2, pivot=centers[2])
+    moved = [v if c != 2 else [f @ T[:3, :3].T + T[:3, 3] for f in v] for c, v in enumerate(per_view)]
+    drifted = run_check(moved, names, centers, cfg)
+    print(format_agreement(drifted))
+    assert {(r.cam_a, r.cam_b) for r in drifted if r.flagged} == {("cam1", "cam2"), ("cam2", "cam3")}
+    assert suspect_cameras(drifted) == ["cam2"]

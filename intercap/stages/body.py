@@ -958,6 +958,11 @@ def upright_template(model, up: np.ndarray) -> BodyParams:
     return template
 
 
+def batch_frames(cfg) -> int:
+    """Frames fitted as one batch: `body.batch_frames`, or `body.batch_frames_gpu` on CUDA."""
+    return cfg.body.batch_frames_gpu if str(cfg.run.device).startswith("cuda") else cfg.body.batch_frames
+
+
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     """The `body` stage: writes OUT/body_params.npz, body_vertices.npy, body_faces.npy, keypoints3d.npy.
 
@@ -966,7 +971,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     out_dir = Path(out_dir)
     (out_dir / "body").mkdir(parents=True, exist_ok=True)
     T = session.num_frames
-    chunks = frame_chunks(T, worker_count(cfg), cfg.run.min_frames_per_worker, cfg.body.batch_frames)
+    chunks = frame_chunks(T, worker_count(cfg), cfg.run.min_frames_per_worker, batch_frames(cfg))
     where = session if len(chunks) == 1 else session.root  # workers load the session themselves
     parts = run_chunks(fit_chunk, chunks, (where, cfg, out_dir), T, "body", progress)
     model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
@@ -1038,7 +1043,8 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         upright.shape[:] = torch.as_tensor(sized, dtype=upright.shape.dtype, device=upright.shape.device)
         fitter.shape_center = upright.shape[0].clone()
     template = upright  # the next batch starts from the last fit
-    batches = [np.arange(s, min(s + bcfg.batch_frames, T)) for s in range(0, T, bcfg.batch_frames)]
+    size = batch_frames(cfg)
+    batches = [np.arange(s, min(s + size, T)) for s in range(0, T, size)]
     for batch in batches:
         if done[batch].all():
             if valid[batch].any():

@@ -393,3 +393,13 @@ def test_a_view_whose_detections_disagree_with_the_others_is_dropped():
     checked = body.reject_disagreeing_views(keypoints, cameras, threshold_px=30.0)
     dropped = (keypoints[..., 2] > 0) & (checked[..., 2] == 0)
     assert torch.equal(dropped, wrong), (dropped ^ wrong).nonzero()
+
+
+def test_a_gpu_fits_larger_batches_than_the_cpu():
+    """On CUDA a batch costs about the same per L-BFGS step whatever its size, so the body stage
+    takes body.batch_frames_gpu frames at once there, body.batch_frames on the CPU."""
+    from intercap.stages.body import batch_frames
+
+    cpu = load_config(overrides=["body.batch_frames=8", "body.batch_frames_gpu=40"])
+    gpu = load_config(overrides=["run.device=cuda:0", "body.batch_frames=8", "body.batch_frames_gpu=40"])
+    assert (batch_frames(cpu), batch_frames(gpu)) == (8, 40)

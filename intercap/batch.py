@@ -28,6 +28,7 @@ from typing import Callable
 
 from intercap.config import Config
 from intercap.io.files import read_json
+from intercap.parallel import on_gpu
 
 log = logging.getLogger(__name__)
 
@@ -190,7 +191,7 @@ def _ray_init(address: str | None):
 def _gpus_per_task(requested: float | None, cfg: Config, cluster_gpus: float) -> float:
     if requested is not None:
         return requested
-    if not cfg.run.device.startswith("cuda"):
+    if not on_gpu(cfg):
         return 0
     if cluster_gpus <= 0:
         raise BatchError("run.device=cuda but the Ray cluster has no GPU; use --set run.device=cpu")

@@ -40,9 +40,14 @@ def cpu_count() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
+def on_gpu(cfg) -> bool:
+    """Whether the run's fitting stages run on a CUDA device (`run.device`)."""
+    return str(cfg.run.device).startswith("cuda")
+
+
 def worker_count(cfg) -> int:
     """`run.workers`, 0 meaning one per CPU core; 1 on a GPU (one process feeds it best)."""
-    if str(cfg.run.device).startswith("cuda"):
+    if on_gpu(cfg):
         return 1
     return max(1, cfg.run.workers or cpu_count())
 

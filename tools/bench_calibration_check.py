@@ -54,17 +54,10 @@ def load_views(session_dir: Path, frames: int):
     return session, cameras.centers.numpy(), per_view
 
 
-def run_check(per_view, names, centers, cfg):
-    from intercap.calib.alignment import check_calibration
-
-    return check_calibration(per_view, names, centers, max_distance=cfg.icp_max_distance_m,
-                             voxel_size=max(2 * cfg.voxel_size_m, 0.02), k_sigma=cfg.calib_k_sigma,
-                             min_mm=cfg.calib_warn_mm, min_deg=cfg.calib_warn_deg)
-
-
 def main(argv=None) -> None:
     from intercap.calib.alignment import suspect_cameras
     from intercap.config import PrepareConfig
+    from intercap.stages.prepare import check_views
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sessions", type=Path, nargs="+")
@@ -87,7 +80,7 @@ def main(argv=None) -> None:
         session, centers, per_view = load_views(session_dir, cfg.calib_frames)
         names = [c.name for c in session.cameras]
         start = time.perf_counter()
-        exact = run_check(per_view, names, centers, cfg)
+        exact = check_views(per_view, names, centers, cfg)
         seconds = time.perf_counter() - start
         worst = max(exact, key=lambda r: r.correction_translation_mm if np.isfinite(r.correction_translation_mm) else -1)
         max_deg = max((r.correction_rotation_deg for r in exact if np.isfinite(r.correction_rotation_deg)), default=np.nan)
@@ -97,7 +90,7 @@ def main(argv=None) -> None:
             pivot = centers[c] if args.about == "camera" else np.zeros(3)
             T = drift_transform(args.drift_deg, args.drift_mm, args.seed + c, pivot)
             moved = [p if i != c else [f @ T[:3, :3].T + T[:3, 3] for f in p] for i, p in enumerate(per_view)]
-            suspects = suspect_cameras(run_check(moved, names, centers, cfg))
+            suspects = suspect_cameras(check_views(moved, names, centers, cfg))
             detected.append(f"{name}:{'+' if suspects == [name] else ('~' if any(name in s for s in suspects) else '-')}")
         info = session.cameras[0]
         print(f"{session_dir.name:<28} {len(names):>5} {f'{info.width}x{info.height}':>8} "

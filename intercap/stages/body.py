@@ -44,7 +44,7 @@ from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
 from intercap.geometry.ground import up_hint_from_cameras
 from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
-from intercap.parallel import Chunk, frame_chunks, run_chunks, worker_count
+from intercap.parallel import Chunk, frame_chunks, on_gpu, run_chunks, worker_count
 
 log = logging.getLogger(__name__)
 
@@ -960,7 +960,7 @@ def upright_template(model, up: np.ndarray) -> BodyParams:
 
 def batch_frames(cfg) -> int:
     """Frames fitted as one batch: `body.batch_frames`, or `body.batch_frames_gpu` on CUDA."""
-    return cfg.body.batch_frames_gpu if str(cfg.run.device).startswith("cuda") else cfg.body.batch_frames
+    return cfg.body.batch_frames_gpu if on_gpu(cfg) else cfg.body.batch_frames
 
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:

@@ -114,6 +114,13 @@ def agreement_rows(results: list, frames: int) -> list[dict]:
     return [{**{key: getattr(r, key) for key in AGREEMENT_FIELDS}, "frames": frames} for r in results]
 
 
+def check_views(points_per_view: list, names: list[str], centers, pcfg) -> list:
+    """The calibration check with `prepare`'s settings: per view, its world points of each checked frame."""
+    return check_calibration(points_per_view, names, centers, max_distance=pcfg.icp_max_distance_m,
+                             voxel_size=max(2 * pcfg.voxel_size_m, 0.02), k_sigma=pcfg.calib_k_sigma,
+                             min_mm=pcfg.calib_warn_mm, min_deg=pcfg.calib_warn_deg)
+
+
 def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     """Run the prepare stage; returns the figures that go into metrics.json."""
     pcfg = cfg.prepare
@@ -157,9 +164,7 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
             fused[c].append(v["points"])
     results = []
     if used_frames:
-        results = check_calibration(fused, names, centers, max_distance=pcfg.icp_max_distance_m,
-                                    voxel_size=max(2 * pcfg.voxel_size_m, 0.02), k_sigma=pcfg.calib_k_sigma,
-                                    min_mm=pcfg.calib_warn_mm, min_deg=pcfg.calib_warn_deg)
+        results = check_views(fused, names, centers, pcfg)
     pairs = agreement_rows(results, used_frames)
     flagged = [p for p in pairs if p["flagged"]]
     suspects = suspect_cameras(results)

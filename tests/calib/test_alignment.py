@@ -235,18 +235,19 @@ def test_sample_session_exact_not_flagged_and_a_bumped_camera_named():
 
     from intercap.calib.alignment import suspect_cameras
     from intercap.config import PrepareConfig
-    from tools.bench_calibration_check import drift_transform, load_views, run_check
+    from intercap.stages.prepare import check_views
+    from tools.bench_calibration_check import drift_transform, load_views
 
     cfg = PrepareConfig()
     session, centers, per_view = load_views(SAMPLE_SESSION, cfg.calib_frames)
     names = [c.name for c in session.cameras]
-    exact = run_check(per_view, names, centers, cfg)
+    exact = check_views(per_view, names, centers, cfg)
     print(format_agreement(exact))
     assert not any(r.flagged for r in exact)
     assert max(r.correction_translation_mm for r in exact) < 5.0
     T = drift_transform(0.5, 10.0, seed=2, pivot=centers[2])
     moved = [v if c != 2 else [f @ T[:3, :3].T + T[:3, 3] for f in v] for c, v in enumerate(per_view)]
-    drifted = run_check(moved, names, centers, cfg)
+    drifted = check_views(moved, names, centers, cfg)
     print(format_agreement(drifted))
     assert {(r.cam_a, r.cam_b) for r in drifted if r.flagged} == {("cam1", "cam2"), ("cam2", "cam3")}
     assert suspect_cameras(drifted) == ["cam2"]

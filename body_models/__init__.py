@@ -1,6 +1,8 @@
 """Body model layer: one interface (`BodyModel`), backends anny (default) and SMPL-X."""
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from intercap.body_models.base import BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix, matrix_to_axis_angle
@@ -33,6 +35,18 @@ def load_body_model(
     raise ValueError(f"unknown body model {name!r}; choose one of {BACKENDS}")
 
 
+_SHARED: dict = {}
+
+
+def shared_model(cfg, device="cpu") -> BodyModel:
+    """`load_from_config`, built once per process and setting (construction takes seconds, and a
+    worker process fits one stage after another): shared, so callers must not change it."""
+    key = (tuple(sorted(dataclasses.asdict(cfg).items())), str(device))
+    if key not in _SHARED:
+        _SHARED[key] = load_from_config(cfg, device)
+    return _SHARED[key]
+
+
 def load_from_config(cfg, device="cpu") -> BodyModel:
     """Body model from an `intercap.config.BodyModelConfig`."""
     return load_body_model(
@@ -46,5 +60,5 @@ def load_from_config(cfg, device="cpu") -> BodyModel:
 
 __all__ = [
     "BodyModel", "BodyOutput", "BodyParams", "KEYPOINT_NAMES", "NUM_BODY_HANDS",
-    "axis_angle_to_matrix", "matrix_to_axis_angle", "load_body_model", "load_from_config",
+    "axis_angle_to_matrix", "matrix_to_axis_angle", "load_body_model", "load_from_config", "shared_model",
 ]

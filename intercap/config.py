@@ -263,7 +263,7 @@ class RunConfig:
     stages: list[str] = field(default_factory=list)  # empty: every built stage
     device: str = "cpu"
     force: bool = False  # recompute stages whose output is already saved
-    workers: int = 0  # processes the fitting stages cut a take into (0: one per CPU core; 1 on a GPU)
+    workers: int = 0  # processes the fitting stages cut a take into (0: one per CPU core; on a GPU, one; N > 1 share it)
     min_frames_per_worker: int = 48  # a take shorter than twice this runs in one process
 
 

@@ -10,7 +10,10 @@ chunk some frames of context beyond its ends (`Chunk.lo_context`, `hi_context`).
 
 Workers are spawned (not forked: torch's OpenMP pool does not survive a fork),
 load the session and the model themselves, and report finished frames through
-a queue so the parent shows one progress bar.
+a queue so the parent shows one progress bar. The worker processes outlive a
+stage: the next stage of the run finds torch, the libraries and the body model
+already loaded there (starting a worker cost ~5 s of imports, per stage), and
+`run_pipeline` shuts them down at its end (`shutdown`).
 """
 from __future__ import annotations
 
@@ -18,6 +21,7 @@ import logging
 import multiprocessing as mp
 import os
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Callable
 
@@ -46,9 +50,13 @@ def on_gpu(cfg) -> bool:
 
 
 def worker_count(cfg) -> int:
-    """`run.workers`, 0 meaning one per CPU core; 1 on a GPU (one process feeds it best)."""
+    """`run.workers`, 0 meaning one per CPU core on the CPU and one process on a GPU.
+
+    Several processes may share one GPU (`run.workers` > 1 with `run.device=cuda`): a
+    stage's GPU work is a chain of small kernels, so one process leaves the GPU waiting
+    on Python and kernel launches, which processes side by side overlap."""
     if on_gpu(cfg):
-        return 1
+        return max(1, cfg.run.workers or 1)
     return max(1, cfg.run.workers or cpu_count())
 
 
@@ -73,6 +81,30 @@ def _init_worker(threads: int) -> None:
     logging.basicConfig(level=logging.WARNING)
 
 
+_pool: dict = {"executor": None, "key": None}
+
+
+def worker_pool(workers: int, threads: int) -> ProcessPoolExecutor:
+    """The run's worker processes (`workers`, `threads` torch threads each), started on first use and
+    kept for the next stage; started anew when the count changes or a worker died."""
+    executor = _pool["executor"]
+    if executor is not None and (_pool["key"] != (workers, threads) or getattr(executor, "_broken", False)):
+        shutdown()
+        executor = None
+    if executor is None:
+        executor = ProcessPoolExecutor(workers, mp_context=mp.get_context("spawn"), initializer=_init_worker,
+                                       initargs=(threads,))
+        _pool.update(executor=executor, key=(workers, threads))
+    return executor
+
+
+def shutdown() -> None:
+    """Stop the worker processes (the next `run_chunks` starts new ones)."""
+    executor, _pool["executor"], _pool["key"] = _pool["executor"], None, None
+    if executor is not None:
+        executor.shutdown(wait=True, cancel_futures=True)
+
+
 def run_chunks(fn: Callable, chunks: list[Chunk], args: tuple, total: int, desc: str, progress: bool,
                initial: int = 0) -> list:
     """`fn(*args, chunk, queue)` for every chunk, in worker processes when there are several
@@ -83,21 +115,22 @@ def run_chunks(fn: Callable, chunks: list[Chunk], args: tuple, total: int, desc:
         result = fn(*args, chunks[0], _Bar(bar))
         bar.close()
         return [result]
-    threads = max(1, cpu_count() // len(chunks))
-    context = mp.get_context("spawn")
-    with context.Manager() as manager:
+    pool = worker_pool(len(chunks), max(1, cpu_count() // len(chunks)))
+    with mp.get_context("spawn").Manager() as manager:
         queue = manager.Queue()
-        with ProcessPoolExecutor(len(chunks), mp_context=context, initializer=_init_worker,
-                                 initargs=(threads,)) as pool:
-            futures = [pool.submit(fn, *args, chunk, queue) for chunk in chunks]
-            while not all(f.done() for f in futures):
-                try:
-                    bar.update(queue.get(timeout=0.5))
-                except Exception:  # noqa: BLE001 - queue.Empty through the manager proxy
-                    pass
-            results = [f.result() for f in futures]  # re-raises a worker's error here
+        futures = [pool.submit(fn, *args, chunk, queue) for chunk in chunks]
+        while not all(f.done() for f in futures):
+            try:
+                bar.update(queue.get(timeout=0.5))
+            except Exception:  # noqa: BLE001 - queue.Empty through the manager proxy
+                pass
         while not queue.empty():
             bar.update(queue.get())
+        try:
+            results = [f.result() for f in futures]  # re-raises a worker's error here
+        except BrokenProcessPool:  # a worker died (killed, out of memory): the next stage starts new ones
+            shutdown()
+            raise
     bar.close()
     return results
 

@@ -19,6 +19,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
+from intercap import parallel
 from intercap.config import Config, save_config
 from intercap.io.files import read_json, write_json
 
@@ -125,23 +126,10 @@ def resolve_stages(requested: list[str] | None) -> list[str]:
     return sorted(set(names), key=ORDER.index)
 
 
-def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[str] | None = None,
-                 progress: bool = True) -> dict:
-    """Run the requested stages (default: every built stage) on a session.
-
-    Returns the metrics dictionary that is also written to OUT/metrics.json."""
-    from intercap.session import Session
-
-    cfg = cfg or Config()
-    names = resolve_stages(stages or cfg.run.stages)
-    session = Session.load(session_path)
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, out_dir / "config.yaml")
-    write_json(out_dir / "run.json", {"session": str(Path(session.root).resolve()), "stages": names})  # for `view`, `report`
+def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: dict, progress: bool) -> None:
+    """Each stage in turn, skipping those done with the same settings and inputs; updates `metrics`
+    and OUT/metrics.json after each."""
     metrics_path = out_dir / "metrics.json"
-    metrics = read_json(metrics_path) if metrics_path.exists() else {}
-
     upstream: list[str] = []
     for name in names:
         stage = STAGES[name]
@@ -171,6 +159,29 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
         write_json(marker, {"stage": name, "fingerprint": fingerprint, "seconds": seconds,
                             "finished": time.strftime("%Y-%m-%dT%H:%M:%S")})
         log.info("%s: done in %.1f s", name, seconds)
+
+
+def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[str] | None = None,
+                 progress: bool = True) -> dict:
+    """Run the requested stages (default: every built stage) on a session.
+
+    Returns the metrics dictionary that is also written to OUT/metrics.json."""
+    from intercap.session import Session
+
+    cfg = cfg or Config()
+    names = resolve_stages(stages or cfg.run.stages)
+    session = Session.load(session_path)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, out_dir / "config.yaml")
+    write_json(out_dir / "run.json", {"session": str(Path(session.root).resolve()), "stages": names})  # for `view`, `report`
+    metrics_path = out_dir / "metrics.json"
+    metrics = read_json(metrics_path) if metrics_path.exists() else {}
+
+    try:
+        _run_stages(session, cfg, out_dir, names, metrics, progress)
+    finally:
+        parallel.shutdown()  # the stages' worker processes
     if cfg.report.enabled:  # OUT/report/index.html; a failure there never loses the results above
         try:
             from intercap.evaluation.report import write_report

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from intercap.body_models import shared_model
 from intercap.dynamics import kinematics as kin
 
 G = 9.81
@@ -80,7 +81,7 @@ def bench_static_hold(frames: int, noise_m: float = 0.002, noise_rad: float = 0.
     from intercap.synth.physics_cases import write_static_hold, write_tiny_camera_session
 
     tick = time.perf_counter()
-    model = physics.body_model(Config().body_model)
+    model = shared_model(Config().body_model)
     build = time.perf_counter() - tick
     out = {}
     with tempfile.TemporaryDirectory() as tmp:

@@ -231,10 +231,16 @@ def hand_contact(hand_vertices: torch.Tensor, grasp_points: torch.Tensor, graspi
                  count: int) -> torch.Tensor:
     """E_C', a grasping hand's palm on the object's graspable parts: the mean squared distance of
     the `count` hand-region vertices (W, N, 3) nearest to the graspable points (W, G, 3) to their
-    nearest graspable point, in frames where the hand grasps (W,) -> (W,), metres^2."""
-    distance = torch.cdist(hand_vertices, grasp_points).min(-1).values  # (W, N)
-    nearest = torch.topk(distance, min(count, distance.shape[-1]), dim=-1, largest=False).values
-    return nearest.pow(2).mean(-1) * grasping
+    nearest graspable point, in frames where the hand grasps (W,) -> (W,), metres^2.
+
+    The pairs are chosen without gradient and only they are measured with it: the same value and
+    gradient (a minimum's flows to its argument only) without differentiating all N x G distances."""
+    with torch.no_grad():
+        distance, nearest_point = torch.cdist(hand_vertices, grasp_points).min(-1)  # (W, N)
+        chosen = torch.topk(distance, min(count, distance.shape[-1]), dim=-1, largest=False).indices  # (W, k)
+    vertices = hand_vertices.gather(1, chosen[..., None].expand(-1, -1, 3))
+    points = grasp_points.gather(1, nearest_point.gather(1, chosen)[..., None].expand(-1, -1, 3))
+    return (vertices - points).pow(2).sum(-1).mean(-1) * grasping
 
 
 def ground_penetration(points: torch.Tensor, ground_point: torch.Tensor, ground_normal: torch.Tensor) -> torch.Tensor:

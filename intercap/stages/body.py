@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
-from intercap.body_models import BodyParams, load_from_config
+from intercap.body_models import BodyParams, shared_model
 from intercap.body_models.base import axis_angle_to_matrix, matrix_to_axis_angle
 from intercap.body_models.keypoints import BODY_25, BODY_25_EDGES, NUM_BODY, NUM_BODY_HANDS
 from intercap.energies import losses, priors
@@ -382,7 +382,7 @@ def visible_vertices(
     cells: int, margin: float,
 ) -> torch.Tensor:
     """(B, C, N) bool: which of the `subset` vertices each view sees. A coarse z-buffer of all
-    vertices (cells x cells*H/W grid) plus the normal facing the camera; no gradient."""
+    the given vertices (cells x cells*H/W grid) plus the normal facing the camera; no gradient."""
     with torch.no_grad():
         B, V, _ = vertices.shape
         C = len(cameras)
@@ -520,6 +520,14 @@ class BodyFitter:
         orient[ORIENT_KEYPOINTS] = 1.0
         self.orient_weights = orient
         self.subset = model.fitting_subsample.to(cameras.K.device)
+        # E_D's correspondences need the fitting vertices' normals, so the faces round them and
+        # those faces' vertices (~45 % of the mesh, spread as evenly as the subset): the model is
+        # skinned there only, and the same vertices fill the visibility test's coarse z-buffer.
+        faces = model.faces.to(device)
+        ring_faces = faces[torch.isin(faces, self.subset).any(1)]
+        self.ring_vertices = torch.unique(ring_faces)  # sorted
+        self.ring_faces = torch.searchsorted(self.ring_vertices, ring_faces)
+        self.subset_in_ring = torch.searchsorted(self.ring_vertices, self.subset)
         self.spheres = BodySpheres.from_model(model)
         self.shape_center = 0.5  # the shape prior's centre: the average person until `size_template`
         self.ground = None  # (point, normal) tensors: E_G keeps the body above the floor when set
@@ -665,16 +673,17 @@ class BodyFitter:
         fitting vertex its view sees (B, C, P), the fitting vertices' normals (B, N, 3), and per
         fitting vertex each view sees its nearest point (B, C, N) (None when that half is off)."""
         with torch.no_grad():
-            vertices = self.model(params).vertices
-            normals = vertex_normals(vertices, self.model.faces)
-            visible = visible_vertices(vertices, normals, self.subset, self.cameras,
+            ring = self.model.sparse_forward(params, self.ring_vertices).vertices  # (B, R, 3)
+            normals = vertex_normals(ring, self.ring_faces)  # exact at the fitting vertices (all their faces are here)
+            visible = visible_vertices(ring, normals, self.subset_in_ring, self.cameras,
                                        self.cfg.visibility_cells, self.cfg.visibility_margin_m)
-            nearest = losses.nearest_visible_vertices(obs.points, vertices[:, self.subset], visible)
+            vertices = ring[:, self.subset_in_ring]
+            nearest = losses.nearest_visible_vertices(obs.points, vertices, visible)
             to_vertices = None
             if self.cfg.depth_model_to_data > 0:
-                to_vertices = losses.nearest_points(vertices[:, self.subset], visible, obs.points, obs.point_valid,
+                to_vertices = losses.nearest_points(vertices, visible, obs.points, obs.point_valid,
                                                     self.cfg.depth_model_to_data_max_m)
-        return nearest, normals[:, self.subset], to_vertices
+        return nearest, normals[:, self.subset_in_ring], to_vertices
 
     def fit(self, obs: BodyObservations, init: BodyParams, monitor=None,
             shape_groups: torch.Tensor | None = None) -> tuple[BodyParams, dict]:
@@ -706,10 +715,15 @@ class BodyFitter:
                 mean = torch.zeros(groups, params.shape.shape[1], dtype=params.shape.dtype, device=device)
                 mean = mean.index_add(0, shape_groups, params.shape.detach()) / count
                 leaves["shape"] = torch.logit(mean.clamp(SHAPE_EPS, 1 - SHAPE_EPS))
-            state = {"matches": None, "rest": None}
+            state = {"matches": None, "rest": None, "posed": None}
             if "shape" not in leaves and "expression" not in leaves:  # the rest pose does not move: computed once
                 with torch.no_grad():
                     state["rest"] = self.model.rest_state(params, self.subset)
+            if set(leaves) <= {"global_orient", "transl"}:  # the body keeps its pose: posed once, only placed
+                with torch.no_grad():  # per evaluation (every backend places its model-space output so)
+                    unplaced = dataclasses.replace(params, global_orient=torch.zeros_like(params.global_orient),
+                                                   transl=torch.zeros_like(params.transl))
+                    state["posed"] = self.model.sparse_forward(unplaced, self.subset, state["rest"])
 
             def current() -> BodyParams:
                 values = {n: leaves.get(n, getattr(params, n).detach()) for n in
@@ -727,8 +741,11 @@ class BodyFitter:
                 if rest is None and "expression" not in leaves and groups < B:  # one rest state per group
                     rest = self.model.rest_state(now[first], self.subset)
                     rest = rest and rest.select(shape_groups)
+                posed = state["posed"]
+                out = None if posed is None else self.model.world_output(posed.vertices, posed.joints,
+                                                                         posed.keypoints, now)
                 terms = self.energy_terms(now, obs, phase.terms, state["matches"],
-                                          getattr(self.cfg, phase.rho_key), rest=rest)
+                                          getattr(self.cfg, phase.rho_key), out=out, rest=rest)
                 return sum(self.weight(k) * v.sum() for k, v in terms.items())
 
             def refresh(step, value):
@@ -974,7 +991,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     chunks = frame_chunks(T, worker_count(cfg), cfg.run.min_frames_per_worker, batch_frames(cfg))
     where = session if len(chunks) == 1 else session.root  # workers load the session themselves
     parts = run_chunks(fit_chunk, chunks, (where, cfg, out_dir), T, "body", progress)
-    model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
+    model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
     fitted = BodyParams.from_numpy_dict(
         {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]}, dtype=model.dtype,
         device=model.faces.device)
@@ -1002,7 +1019,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     bcfg = cfg.body
     torch.manual_seed(bcfg.seed)
     out_dir = Path(out_dir)
-    model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
+    model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
     cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
     keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
                                      bcfg.keypoint_view_check_px)

@@ -282,11 +282,11 @@ def _model_key(body_model_cfg) -> tuple:
 def body_regions(body_model_cfg) -> tuple[dict[str, np.ndarray], int]:
     """The body model's contact regions (name -> vertex ids) and vertex count; kept per
     model setting, since building a model takes seconds and the regions never change."""
-    from intercap.body_models import load_from_config
+    from intercap.body_models import shared_model
 
     key = _model_key(body_model_cfg)
     if key not in _REGIONS:
-        model = load_from_config(body_model_cfg, device="cpu")
+        model = shared_model(body_model_cfg)
         _REGIONS[key] = ({r: ids.cpu().numpy() for r, ids in model.contact_regions.items()}, model.num_vertices)
         with torch.no_grad():  # the rest mesh (neutral shape, rest pose): the report's contact heat map
             _REST[key] = model(model.init_params(1)).vertices[0].float().cpu().numpy()

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 import trimesh
 
-from intercap.body_models import BodyParams, load_from_config
+from intercap.body_models import BodyParams, shared_model
 from intercap.body_models.base import PARAM_FIELDS, BodyOutput, axis_angle_to_matrix, matrix_to_axis_angle
 from intercap.energies import losses
 from intercap.energies.motion_prior import MODEL_FPS
@@ -543,7 +543,7 @@ class GlobalProblem:
         g = cfg.global_
         torch.manual_seed(g.seed)
         stage_dir = out_dir / "global"
-        self.model = load_from_config(dataclasses.replace(cfg.body_model, name=session.body_model),
+        self.model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model),
                                       device=cfg.run.device)
         self.cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
         self.per_frame = load_per_frame(session, out_dir, self.model)

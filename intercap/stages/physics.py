@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import yaml
 
+from intercap.body_models import shared_model
 from intercap.dynamics import contact_forces as cf
 from intercap.dynamics import kinematics as kin
 from intercap.dynamics import mass as mass_model
@@ -92,17 +93,6 @@ def _require(path: Path, stage: str) -> Path:
     return path
 
 
-_MODELS: dict = {}
-
-
-def body_model(body_model_cfg):
-    """The body model of a setting, built once per process (construction takes seconds)."""
-    from intercap.body_models import load_from_config
-
-    key = tuple(sorted(dataclasses.asdict(body_model_cfg).items()))
-    if key not in _MODELS:
-        _MODELS[key] = load_from_config(body_model_cfg, device="cpu")
-    return _MODELS[key]
 
 
 # -- the body ----------------------------------------------------------------------------------
@@ -201,7 +191,7 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
 
     # body
     saved = dict(np.load(_require(out_dir / "body_params.npz", "global")))
-    model = body_model(dataclasses.replace(cfg.body_model, name=session.body_model))
+    model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model))
     if str(saved.get("model", model.name)) != model.name:
         raise PhysicsError(f"{out_dir / 'body_params.npz'} holds a {saved['model']} fit, the session asks for {model.name}")
     if len(saved["transl"]) != T:

@@ -2,7 +2,7 @@
 import numpy as np
 import torch
 
-from intercap.energies.losses import nearest_points, visible_vertices_to_points
+from intercap.energies.losses import hand_contact, nearest_points, visible_vertices_to_points
 
 
 def patch(offset_m: float):
@@ -42,3 +42,22 @@ def test_hidden_vertices_and_far_points_pull_nothing():
     none = nearest_points(vertices, visible, points, valid, 0.01)  # every point 2 cm away
     assert (none == -1).all()
     assert float(visible_vertices_to_points(vertices, normals, points, none, scale=0.05)) == 0.0
+
+
+def test_hand_contact_equals_its_definition_with_gradients():
+    """E_C' picks its pairs without gradient: value and gradients must be those of the plain
+    definition (the `count` hand vertices nearest to the graspable points, each to its nearest)."""
+    g = torch.Generator().manual_seed(0)
+    hand = (torch.randn(5, 60, 3, generator=g) * 0.05).requires_grad_(True)
+    grasp = (torch.randn(5, 80, 3, generator=g) * 0.05 + 0.02).requires_grad_(True)
+    grasping = torch.tensor([1.0, 0.0, 1.0, 1.0, 0.0])
+    distance = torch.cdist(hand, grasp).min(-1).values
+    plain = torch.topk(distance, 7, dim=-1, largest=False).values.pow(2).mean(-1) * grasping
+    plain_grads = torch.autograd.grad(plain.sum(), (hand, grasp))
+    fast = hand_contact(hand, grasp, grasping, 7)
+    fast_grads = torch.autograd.grad(fast.sum(), (hand, grasp))
+    assert torch.allclose(plain, fast, atol=1e-8)
+    assert fast[1] == 0 and fast[0] > 0
+    for a, b in zip(plain_grads, fast_grads):
+        assert torch.allclose(a, b, atol=1e-7)
+        assert (b != 0).sum() > 0

@@ -1,6 +1,7 @@
 """The body stage: fits recover known synthetic poses; missing evidence is handled, not invented."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -91,6 +92,33 @@ def test_sparse_forward_is_the_forward(model):
         full, cached = model(params), model.sparse_forward(params, ids, rest)
     assert torch.allclose(full.keypoints, cached.keypoints, atol=1e-5)
     assert torch.allclose(full.vertices[:, ids], cached.vertices, atol=1e-6)
+    # and the same gradients (the sparse skinning has its own backward)
+    pose = params.body_pose.clone().requires_grad_(True)
+    grads = []
+    for forward in (lambda p: model(p).vertices[:, ids], lambda p: model.sparse_forward(p, ids, rest).vertices):
+        forward(dataclasses.replace(params, body_pose=pose)).square().sum().backward()
+        grads.append(pose.grad.clone())
+        pose.grad = None
+    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-4 * float(grads[0].abs().max()))
+
+
+def test_correspondences_see_as_the_whole_mesh_does(model, sample):
+    """E_D's correspondences skin only the faces round the fitting vertices: their normals are the
+    whole mesh's, and the z-buffer of those vertices hides what the whole mesh's hides."""
+    session = Session.load(sample)
+    cameras = Cameras.from_infos(session.cameras)
+    params, _ = truth(sample)
+    fitter = body.BodyFitter(model, cameras, load_config().body)
+    with torch.no_grad():
+        vertices = model(params[0]).vertices
+        normals = body.vertex_normals(vertices, model.faces)
+        ring = model.sparse_forward(params[0], fitter.ring_vertices).vertices
+        ring_normals = body.vertex_normals(ring, fitter.ring_faces)
+    assert len(fitter.ring_vertices) < 0.6 * vertices.shape[1]
+    assert torch.allclose(ring_normals[:, fitter.subset_in_ring], normals[:, fitter.subset], atol=1e-4)
+    whole = body.visible_vertices(vertices, normals, fitter.subset, cameras, 100, 0.03)
+    from_ring = body.visible_vertices(ring, ring_normals, fitter.subset_in_ring, cameras, 100, 0.03)
+    assert (whole == from_ring).float().mean() > 0.98
 
 
 def test_triangulation_recovers_points():

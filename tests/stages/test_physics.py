@@ -5,6 +5,7 @@ import shutil
 import numpy as np
 import pytest
 
+from intercap.body_models import shared_model
 from intercap.config import Config
 from intercap.io.files import write_json
 from intercap.pipeline import run_pipeline
@@ -21,7 +22,7 @@ CONTRACT = {"frame_ids": (T,), "gravity": (3,), "body_mass_kg": (), "object_mass
 
 @pytest.fixture(scope="module")
 def model():
-    return physics.body_model(Config().body_model)
+    return shared_model(Config().body_model)
 
 
 @pytest.fixture(scope="module")

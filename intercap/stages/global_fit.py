@@ -544,7 +544,7 @@ class GlobalProblem:
         torch.manual_seed(g.seed)
         stage_dir = out_dir / "global"
         self.model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model),
-                                      device=cfg.run.device)
+                                  device=cfg.run.device)
         self.cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
         self.per_frame = load_per_frame(session, out_dir, self.model)
         ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None

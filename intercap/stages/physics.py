@@ -93,8 +93,6 @@ def _require(path: Path, stage: str) -> Path:
     return path
 
 
-
-
 # -- the body ----------------------------------------------------------------------------------
 @dataclasses.dataclass
 class BodyTrack:

@@ -64,17 +64,35 @@ def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
 
 
 class _SparseSkinning(torch.autograd.Function):
-    """(n, J) sparse skinning weights @ (J, M) bone transforms, with the transpose's product as its
-    gradient: torch's own sparse backward builds a dense (n, J) gradient nobody asks for."""
+    """Linear blend skinning on the CPU, fused: the (n, J) sparse weights blend the bone transforms
+    per vertex, whose columns then move the rest vertices: v = a_x x + a_y y + a_z z + t. Frames
+    are the innermost axis throughout ((n, 4, 3, B) blend, (n, 3, B) rest and moved vertices), so
+    every product runs over contiguous rows; the backward is written out (autograd's own went
+    through a dense (n, J) weight gradient nobody asks for and a zero-filled blend per column)."""
 
     @staticmethod
-    def forward(ctx, transforms: torch.Tensor, skin: "SparseSkin") -> torch.Tensor:
+    def forward(ctx, columns: torch.Tensor, rest: torch.Tensor, skin: "SparseSkin") -> torch.Tensor:
+        J, _, _, B = columns.shape  # (J, 4, 3, B): column k of every bone's transform
+        blend = (skin.weights @ columns.reshape(J, 12 * B)).view(-1, 4, 3, B)
         ctx.skin = skin
-        return skin.weights @ transforms
+        ctx.save_for_backward(blend, rest)
+        return (blend[:, 0] * rest[:, 0:1] + blend[:, 1] * rest[:, 1:2] + blend[:, 2] * rest[:, 2:3]
+                + blend[:, 3])  # (n, 3, B)
 
     @staticmethod
     def backward(ctx, grad: torch.Tensor):
-        return ctx.skin.transposed @ grad.contiguous(), None
+        blend, rest = ctx.saved_tensors
+        grad = grad.contiguous()
+        n, _, B = grad.shape
+        grad_blend = torch.empty(n, 4, 3, B, dtype=grad.dtype, device=grad.device)
+        for k in range(3):
+            torch.mul(grad, rest[:, k:k + 1], out=grad_blend[:, k])
+        grad_blend[:, 3] = grad
+        grad_columns = (ctx.skin.transposed @ grad_blend.view(n, 12 * B)).view(-1, 4, 3, B)
+        grad_rest = None
+        if ctx.needs_input_grad[1]:  # shape is being fitted: d v / d v_rest = the blended rotation
+            grad_rest = torch.stack([(grad * blend[:, k]).sum(1) for k in range(3)], 1)
+        return grad_columns, grad_rest, None
 
 
 @dataclass(frozen=True)
@@ -92,14 +110,19 @@ class SparseSkin:
             return cls(dense.to_sparse_csr(), dense.t().contiguous().to_sparse_csr())
 
 
-def skin_transforms(skin: "torch.Tensor | SparseSkin", transforms: torch.Tensor) -> torch.Tensor:
-    """Per-vertex blended bone transforms (B, n, 3, 4) from skinning weights (n, J), dense or
-    `SparseSkin`, and bone transforms (B, J, 3, 4)."""
-    if not isinstance(skin, SparseSkin):
-        return torch.einsum("nj,bjik->bnik", skin, transforms)
-    B, J = transforms.shape[:2]
-    flat = transforms.permute(1, 0, 2, 3).reshape(J, B * 12)
-    return _SparseSkinning.apply(flat, skin).view(-1, B, 3, 4).permute(1, 0, 2, 3)
+def skin_vertices(skin: "torch.Tensor | SparseSkin", transforms: torch.Tensor, rest: torch.Tensor) -> torch.Tensor:
+    """Linear blend skinning: the rest vertices (B or 1, n, 3) moved by the bone transforms
+    (B, J, 3, 4) blended with the skinning weights (n, J), dense (one einsum kernel on CUDA) or
+    `SparseSkin` (the CPU); (B, n, 3)."""
+    B = transforms.shape[0]
+    rest = rest.expand(B, *rest.shape[1:])
+    if isinstance(skin, SparseSkin):
+        moved = _SparseSkinning.apply(transforms.permute(1, 3, 2, 0), rest.permute(1, 2, 0).contiguous(), skin)
+        return moved.permute(2, 0, 1).contiguous()  # (n, 3, B) -> (B, n, 3)
+    blend = torch.einsum("nj,bjik->bnik", skin, transforms)
+    # R v + t written out: a sum over a trailing axis of 3 took 7x longer
+    return (blend[..., 0] * rest[..., 0:1] + blend[..., 1] * rest[..., 1:2]
+            + blend[..., 2] * rest[..., 2:3] + blend[..., 3])
 
 
 @dataclass
@@ -370,10 +393,7 @@ class AnnyBody(BodyModel):
         if rest is None:
             rest = self.rest_state(params, vertex_ids)
         transforms, bone_poses = self.core.get_bone_transforms(self._pose_matrices(params), rest.bones)  # (B, J, 4, 4)
-        blend = skin_transforms(rest.skin, transforms[..., :3, :])
-        # R v + t written out: a sum over a trailing axis of 3 took 7x longer on the CPU
-        vertices = (blend[..., 0] * rest.vertices[..., 0:1] + blend[..., 1] * rest.vertices[..., 1:2]
-                    + blend[..., 2] * rest.vertices[..., 2:3] + blend[..., 3])  # (B, n, 3)
+        vertices = skin_vertices(rest.skin, transforms[..., :3, :], rest.vertices)  # (B, n, 3)
         used = transforms[:, self.coco_bones]
         coco = (torch.einsum("bjde,bkje->bkd", used[..., :3, :3], rest.folded_regressor)
                 + torch.einsum("bjd,kj->bkd", used[..., :3, 3], self.coco_skin))

@@ -71,7 +71,8 @@ class ObjectConfig:
     occluder_margin_m: float = 0.03  # measured this much in front of the object = occluded there
     iterations: int = 60  # at most, per frame (early stopping ends most fits at 30 fps in 10-20)
     stop_tolerance: float = 1e-3  # relative E_O decrease that counts as progress
-    stop_patience: int = 3  # steps without progress before the step size shrinks (or the fit stops)
+    stop_patience: int = 2  # steps without progress before the step size shrinks (or the fit stops); 3: 16 % more
+    # renders for the same ADD-S at 30 fps (BENCHMARKS.md)
     init_iterations: int = 15  # per hypothesis, before the best is refined
     init_global_tries: int = 2  # FPFH RANSAC registrations among the hypotheses
     init_ransac_iterations: int = 5000
@@ -141,7 +142,10 @@ class BodyConfig:
     w_penetration: float = 1.0e5
     fit_expression: bool = False  # anny has no face landmarks in our keypoint set: expression stays neutral
     orient_steps: int = 5  # L-BFGS steps of the phase that moves only orientation + translation
-    pose_steps: int = 15  # + body pose and shape, keypoints only
+    pose_steps: int = 15  # + body pose and shape, keypoints only (sessions below `dense_fps`)
+    pose_steps_dense: int = 10  # the same at `dense_fps` and above, where a batch's frames lie near the previous
+    # batch's last fit (30 fps: body 16 % faster, surface +0.4 %; at 5 fps 10 steps cost 3 %: BENCHMARKS.md)
+    dense_fps: float = 20.0
     full_steps: int = 20  # + hands, with the depth term and self-penetration (10: stoops stay 2x off, BENCHMARKS.md)
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5

@@ -5,6 +5,9 @@ written (B frames, C views, h x w render grid).
 """
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass
+
 import numpy as np
 import roma
 import torch
@@ -115,44 +118,6 @@ def _nearest_per_view(queries: torch.Tensor, query_mask: torch.Tensor, targets: 
     return torch.from_numpy(nearest)
 
 
-def point_to_visible_vertices(
-    points: torch.Tensor,
-    point_valid: torch.Tensor,
-    vertices: torch.Tensor,
-    normals: torch.Tensor,
-    nearest: torch.Tensor,
-    scale: float,
-    tangent_weight: float = 0.25,
-) -> torch.Tensor:
-    """E_D, per view the mean over the segmented points of rho(distance to the nearest body
-    vertex visible from that view), summed over views; (B, C, P, 3) points -> (B,).
-
-    `nearest` (B, C, P) from `nearest_visible_vertices`. The distance is
-    point-to-plane at that vertex (normals (B, N, 3)) plus `tangent_weight`
-    times the in-plane offset, so the term does not pull the surface towards
-    the sparse vertex positions (the fitting subsample is ~3 cm apart). rho is
-    Geman-McClure with `scale` metres: points of the object, of other people or
-    flying pixels saturate instead of dragging the body. Scaled by scale^2,
-    so a small offset costs its square in metres^2."""
-    usable = point_valid & (nearest >= 0)
-    index = nearest.clamp(min=0).flatten(1)[..., None].expand(-1, -1, 3)  # (B, C*P, 3)
-    v = vertices.gather(1, index).view(points.shape)
-    n = normals.gather(1, index).view(points.shape)
-    return _robust_plane_distance(points - v, n, usable, scale, tangent_weight)
-
-
-def _robust_plane_distance(offset: torch.Tensor, normals: torch.Tensor, usable: torch.Tensor, scale: float,
-                           tangent_weight: float) -> torch.Tensor:
-    """E_D's per-view robust mean, (B, C, M, 3) offsets from the vertices with normals (broadcast)
-    -> (B,): rho(point-to-plane^2 + tangent_weight * in-plane^2) averaged over the usable (B, C, M),
-    summed over views, Geman-McClure with `scale` metres and scaled by scale^2."""
-    along = (offset * normals).sum(-1, keepdim=True)
-    tangent = offset - along * normals
-    squared = along[..., 0] ** 2 + tangent_weight * (tangent * tangent).sum(-1)  # (B, C, M)
-    rho = squared / (squared + scale * scale) * usable
-    return rho.sum(-1).div(usable.sum(-1).clamp(min=1)).sum(-1) * scale**2
-
-
 def nearest_points(vertices: torch.Tensor, visible: torch.Tensor, points: torch.Tensor, point_valid: torch.Tensor,
                    max_distance: float) -> torch.Tensor:
     """For each fitting vertex (B, N, 3) a view sees (visible (B, C, N)), the index (B, C, N) of that
@@ -164,25 +129,72 @@ def nearest_points(vertices: torch.Tensor, visible: torch.Tensor, points: torch.
     return _nearest_per_view(per_view, visible, points, point_valid, max_distance).to(points.device)
 
 
-def visible_vertices_to_points(
-    vertices: torch.Tensor,
-    normals: torch.Tensor,
-    points: torch.Tensor,
-    nearest: torch.Tensor,
-    scale: float,
-    tangent_weight: float = 0.25,
-) -> torch.Tensor:
-    """E_D's model-to-data half: per view the mean over the fitting vertices it sees of
-    rho(distance to the nearest segmented point), summed over views; (B, N, 3) -> (B,).
+@dataclass
+class DepthPairs:
+    """E_D's correspondences, both halves, as one flat list of K (fitting vertex, point) pairs:
+    each segmented point with the nearest fitting vertex its view sees (data to model), and each
+    fitting vertex a view sees with that view's nearest point (model to data). Built without
+    gradient once per refresh (`depth_pairs`); the term then touches these pairs only, not every
+    (frame, view, vertex) of which most are hidden."""
 
-    The data-to-model half alone lets a part of the surface hang where the sensor saw nothing
-    (a stooped torso 5 cm below its points, whose points then match the arms and thighs):
-    every visible vertex should have data on it. `nearest` (B, C, N) from `nearest_points`;
-    the distance is point-to-plane at the vertex plus `tangent_weight` times the in-plane offset
-    (the points are a sparse subset); Geman-McClure with `scale` metres, scaled by scale^2."""
-    B, C, N = nearest.shape
-    matched = torch.gather(points, 2, nearest.clamp(min=0)[..., None].expand(B, C, N, 3))  # (B, C, N, 3)
-    return _robust_plane_distance(matched - vertices[:, None], normals[:, None], nearest >= 0, scale, tangent_weight)
+    vertex: torch.Tensor  # (K,) row of the vertex in the (B * N, 3) fitting vertices
+    frame: torch.Tensor  # (K,)
+    point: torch.Tensor  # (3, K) the point, one row per coordinate
+    normal: torch.Tensor  # (3, K) the vertex's unit normal
+    weight: torch.Tensor  # (K,) 1 / pairs of its (frame, view, half), times the half's weight
+    batch_size: int
+
+    def to(self, device) -> "DepthPairs":
+        return dataclasses.replace(self, **{f.name: getattr(self, f.name).to(device)
+                                            for f in dataclasses.fields(self) if f.name != "batch_size"})
+
+
+def depth_pairs(points: torch.Tensor, point_valid: torch.Tensor, normals: torch.Tensor, nearest: torch.Tensor,
+                nearest_to_vertices: torch.Tensor | None = None, model_to_data: float = 1.0) -> DepthPairs:
+    """`DepthPairs` from the points (B, C, P, 3) and their mask, the fitting vertices' normals
+    (B, N, 3), `nearest` (B, C, P) from `nearest_visible_vertices` and `nearest_to_vertices`
+    (B, C, N) from `nearest_points` (None: the model-to-data half is off), that half weighted
+    `model_to_data`. Each half is a mean per view over its pairs, as in PROX's E_D."""
+    B, C, P = nearest.shape
+    N = normals.shape[1]
+
+    def half(mask, vertex_of, point_of, weight):
+        b, c, i = torch.nonzero(mask, as_tuple=True)
+        count = mask.sum(-1).clamp(min=1).to(points.dtype)  # (B, C) pairs per view
+        return b * N + vertex_of(b, c, i), b, point_of(b, c, i), weight / count[b, c]
+
+    halves = [half(point_valid & (nearest >= 0), lambda b, c, p: nearest[b, c, p],
+                   lambda b, c, p: points[b, c, p], 1.0)]
+    if nearest_to_vertices is not None and model_to_data > 0:
+        halves.append(half(nearest_to_vertices >= 0, lambda b, c, n: n,
+                           lambda b, c, n: points[b, c, nearest_to_vertices[b, c, n]], model_to_data))
+    vertex, frame, point, weight = (torch.cat(parts) for parts in zip(*halves))
+    normal = normals.reshape(B * N, 3)[vertex]
+    return DepthPairs(vertex, frame, point.t().contiguous(), normal.t().contiguous(), weight, B)
+
+
+def depth_point_to_plane(vertices: torch.Tensor, pairs: DepthPairs, scale: float,
+                         tangent_weight: float = 0.25) -> torch.Tensor:
+    """E_D, both halves, (B, N, 3) fitting vertices -> (B,): per view the mean over its segmented
+    points of rho(distance to the nearest vertex the view sees), plus per view the mean over the
+    vertices it sees of rho(distance to the nearest point), summed over views.
+
+    The data-to-model half alone lets a part of the surface hang where the sensor saw nothing (a
+    stooped torso 5 cm below its points, whose points then match the arms and thighs): every
+    visible vertex should have data on it. The distance is point-to-plane at the vertex plus
+    `tangent_weight` times the in-plane offset, so the term does not pull the surface towards the
+    sparse vertex positions (the fitting subsample is ~3 cm apart); with a unit normal n and
+    offset o that is (1 - w) (o.n)^2 + w |o|^2. rho is Geman-McClure with `scale` metres (points
+    of the object, other people or flying pixels saturate), scaled by scale^2 so a small offset
+    costs its square in metres^2. Coordinates are written out: sums over a size-3 axis are slow
+    on the CPU."""
+    v = vertices.reshape(-1, 3).t().index_select(1, pairs.vertex)  # (3, K)
+    offset = pairs.point - v
+    along = offset[0] * pairs.normal[0] + offset[1] * pairs.normal[1] + offset[2] * pairs.normal[2]
+    squared = ((1 - tangent_weight) * along * along
+               + tangent_weight * (offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2]))
+    rho = squared / (squared + scale * scale) * pairs.weight
+    return vertices.new_zeros(pairs.batch_size).index_add(0, pairs.frame, rho) * scale**2
 
 
 def sphere_self_penetration(centres: torch.Tensor, radii: torch.Tensor, pairs: torch.Tensor) -> torch.Tensor:

@@ -35,7 +35,7 @@ plausible input, differentiable everywhere used by the fit. They are anny's
 (bone names and frames); `joint_angles` / `body_pose_from_joint_angles` and
 `hand_angles` / `hand_pose_from_angles` convert between poses and anatomical angles.
 
-Public: joint_limit_penalty, extreme_bending, hand_pose_prior, learned_pose_prior,
+Public: joint_limit_penalty, extreme_bending, hand_pose_prior, hands_pose_prior, learned_pose_prior,
 shape_prior, expression_prior; joint_angles, joint_angle_names, joint_limit_excess,
 body_pose_from_joint_angles, hand_angles, hand_pose_from_angles, learned_features, mirror_body_pose.
 """
@@ -603,6 +603,13 @@ def hand_pose_prior(hand_pose: torch.Tensor, side: str, coupling_weight: float =
     penalty = squared_hinge(angles, a.hand_low, a.hand_high).sum((1, 2))
     coupling = angles[:, a.dip, 0] - DIP_PIP_RATIO * angles[:, a.pip, 0]
     return penalty + coupling_weight * (coupling**2).sum(1)
+
+
+def hands_pose_prior(left_hand_pose: torch.Tensor, right_hand_pose: torch.Tensor) -> torch.Tensor:
+    """(B,) `hand_pose_prior` of both hands, as one batch: the right hand mirrored into the left's
+    convention (as `hand_angles` does), so the chain of small operations runs once, not twice."""
+    both = torch.cat([left_hand_pose, right_hand_pose * right_hand_pose.new_tensor(MIRROR)])
+    return hand_pose_prior(both, "L").view(2, -1).sum(0)
 
 
 # ---------------------------------------------------------------------------

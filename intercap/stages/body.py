@@ -370,11 +370,16 @@ def weighted_kabsch(source: torch.Tensor, target: torch.Tensor, weight: torch.Te
 
 
 def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """(B, V, 3) unit area-weighted vertex normals."""
-    tri = vertices[:, faces]  # (B, F, 3, 3)
-    face_normals = torch.cross(tri[:, :, 1] - tri[:, :, 0], tri[:, :, 2] - tri[:, :, 0], dim=-1)
-    normals = torch.zeros_like(vertices).index_add_(1, faces.reshape(-1), face_normals.repeat_interleave(3, 1))
-    return torch.nn.functional.normalize(normals, dim=-1)
+    """(B, V, 3) unit area-weighted vertex normals. Computed vertex-major ((V, B, 3)), so each
+    face adds one contiguous row of B normals to each of its corners: 2.5x faster than per frame."""
+    B, V, _ = vertices.shape
+    rows = vertices.transpose(0, 1)  # (V, B, 3)
+    a, b, c = rows[faces[:, 0]], rows[faces[:, 1]], rows[faces[:, 2]]  # (F, B, 3)
+    face_normals = torch.linalg.cross(b - a, c - a, dim=-1).reshape(len(faces), B * 3)
+    normals = torch.zeros(V, B * 3, dtype=vertices.dtype, device=vertices.device)
+    for corner in range(3):
+        normals = normals.index_add(0, faces[:, corner], face_normals)
+    return torch.nn.functional.normalize(normals.view(V, B, 3), dim=-1).transpose(0, 1)
 
 
 def visible_vertices(
@@ -503,10 +508,14 @@ PHASES = (
 class BodyFitter:
     """Fits batches of frames; holds the model, cameras, priors' tables and the sphere proxy."""
 
-    def __init__(self, model, cameras: Cameras, cfg):
+    def __init__(self, model, cameras: Cameras, cfg, fps: float | None = None):
         self.model = model
         self.cameras = cameras
         self.cfg = cfg
+        # each phase's L-BFGS steps; the pose phase needs fewer where the frames are dense in time
+        self.steps = {phase.steps_key: getattr(cfg, phase.steps_key) for phase in PHASES}
+        if fps is not None and fps >= cfg.dense_fps:
+            self.steps["pose_steps"] = cfg.pose_steps_dense
         names = model.body_joint_names
         device = cameras.K.device
         self.free_bones = torch.tensor([i for i, n in enumerate(names) if not n.startswith(FROZEN_BONE_PREFIXES)],
@@ -611,7 +620,7 @@ class BodyFitter:
     # -- energy ----------------------------------------------------------------------
     def energy_terms(self, params: BodyParams, obs: BodyObservations, terms, matches=None,
                      rho: float | None = None, out=None, rest=None) -> dict[str, torch.Tensor]:
-        """Each active term per frame, (B,), unweighted. `matches`: E_D's (nearest, normals) from
+        """Each active term per frame, (B,), unweighted. `matches`: E_D's `DepthPairs` from
         `correspondences`, needed when "depth" is among the terms; `rho`: E_J's robust scale
         (default cfg.keypoint_rho); `out`: the model's output for `params` whose first vertices
         are the fitting subsample, when the caller has it already; `rest`: the model's `rest_state`
@@ -629,14 +638,8 @@ class BodyFitter:
             result["keypoints"] = losses.keypoint_reprojection(
                 pix, obs.keypoints[..., :2], conf, weights, self.scale_px, rho or self.cfg.keypoint_rho)
         if "depth" in terms:
-            nearest, normals, nearest_to_vertices = matches
             one_view = keypoint_views(obs.keypoints, self.cfg) < 2
-            vertices = out.vertices[:, :len(self.subset)]
-            depth = losses.point_to_visible_vertices(obs.points, obs.point_valid, vertices, normals, nearest,
-                                                     self.cfg.depth_scale_m)
-            if self.cfg.depth_model_to_data > 0:
-                depth = depth + self.cfg.depth_model_to_data * losses.visible_vertices_to_points(
-                    vertices, normals, obs.points, nearest_to_vertices, self.cfg.depth_scale_m)
+            depth = losses.depth_point_to_plane(out.vertices[:, :len(self.subset)], matches, self.cfg.depth_scale_m)
             result["depth"] = depth * torch.where(one_view, self.cfg.one_view_depth_factor, 1.0)
         if "pose_prior" in terms:
             result["pose_prior"] = priors.learned_pose_prior(params.body_pose)
@@ -646,8 +649,7 @@ class BodyFitter:
         if "bending" in terms:
             result["bending"] = priors.extreme_bending(params.body_pose, excess)
         if "hand_prior" in terms:
-            result["hand_prior"] = (priors.hand_pose_prior(params.left_hand_pose, "L")
-                               + priors.hand_pose_prior(params.right_hand_pose, "R"))
+            result["hand_prior"] = priors.hands_pose_prior(params.left_hand_pose, params.right_hand_pose)
         if "shape" in terms:
             result["shape"] = priors.shape_prior(params.shape, center=self.shape_center)
         if "expression" in terms and self.cfg.fit_expression:
@@ -667,11 +669,10 @@ class BodyFitter:
     def weight(self, term: str) -> float:
         return getattr(self.cfg, f"w_{term}")
 
-    def correspondences(self, params: BodyParams, obs: BodyObservations
-                        ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """E_D's data association, refreshed once per L-BFGS step (as ICP): per point the nearest
-        fitting vertex its view sees (B, C, P), the fitting vertices' normals (B, N, 3), and per
-        fitting vertex each view sees its nearest point (B, C, N) (None when that half is off)."""
+    def correspondences(self, params: BodyParams, obs: BodyObservations) -> losses.DepthPairs:
+        """E_D's data association, refreshed once per L-BFGS step (as ICP): each point with the
+        nearest fitting vertex its view sees, and (when `depth_model_to_data` > 0) each fitting
+        vertex a view sees with that view's nearest point, with the vertices' normals."""
         with torch.no_grad():
             ring = self.model.sparse_forward(params, self.ring_vertices).vertices  # (B, R, 3)
             normals = vertex_normals(ring, self.ring_faces)  # exact at the fitting vertices (all their faces are here)
@@ -683,7 +684,8 @@ class BodyFitter:
             if self.cfg.depth_model_to_data > 0:
                 to_vertices = losses.nearest_points(vertices, visible, obs.points, obs.point_valid,
                                                     self.cfg.depth_model_to_data_max_m)
-        return nearest, normals[:, self.subset_in_ring], to_vertices
+            return losses.depth_pairs(obs.points, obs.point_valid, normals[:, self.subset_in_ring], nearest,
+                                      to_vertices, self.cfg.depth_model_to_data)
 
     def fit(self, obs: BodyObservations, init: BodyParams, monitor=None,
             shape_groups: torch.Tensor | None = None) -> tuple[BodyParams, dict]:
@@ -756,7 +758,7 @@ class BodyFitter:
 
             if "depth" in phase.terms:
                 state["matches"] = self.correspondences(current(), obs)
-            result = minimise(list(leaves.values()), energy, max_steps=getattr(self.cfg, phase.steps_key),
+            result = minimise(list(leaves.values()), energy, max_steps=self.steps[phase.steps_key],
                               inner_iterations=self.cfg.inner_iterations, ftol=self.cfg.ftol, monitor=refresh)
             params = current().detach()
             stats[phase.name] = {"energy": result.energy, "steps": result.steps,
@@ -1024,7 +1026,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
                                      bcfg.keypoint_view_check_px)
     person = PersonPoints(session, cameras, bcfg, out_dir)
-    fitter = BodyFitter(model, cameras, bcfg)
+    fitter = BodyFitter(model, cameras, bcfg, session.fps)
     if (out_dir / "prepare" / "ground.json").exists():  # one view hides the legs: they must not sink through it
         from intercap.stages.prepare import load_ground
 

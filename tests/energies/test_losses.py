@@ -1,8 +1,8 @@
-"""E_D's model-to-data half: every visible vertex is pulled onto the nearest segmented point."""
+"""E_D (its model-to-data half: every visible vertex is pulled onto the nearest segmented point) and E_C'."""
 import numpy as np
 import torch
 
-from intercap.energies.losses import hand_contact, nearest_points, visible_vertices_to_points
+from intercap.energies.losses import depth_pairs, depth_point_to_plane, hand_contact, nearest_points
 
 
 def patch(offset_m: float):
@@ -16,13 +16,20 @@ def patch(offset_m: float):
     return vertices, normals, points[:, None]  # points (1, C=1, 100, 3)
 
 
+def model_to_data(vertices, normals, points, nearest):
+    """E_D's model-to-data half alone, through `DepthPairs` (no data-to-model pairs)."""
+    no_points = torch.zeros(points.shape[:3], dtype=torch.bool)
+    pairs = depth_pairs(points, no_points, normals, torch.full(no_points.shape, -1), nearest)
+    return depth_point_to_plane(vertices, pairs, scale=0.05)
+
+
 def test_visible_vertices_are_pulled_onto_their_points():
     vertices, normals, points = patch(0.02)
     visible = torch.ones(1, 1, 100, dtype=torch.bool)
     nearest = nearest_points(vertices, visible, points, torch.ones(1, 1, 100, dtype=torch.bool), 0.10)
     assert (nearest[0, 0] == torch.arange(100)).all()  # each vertex's own point, straight above it
     vertices.requires_grad_(True)
-    energy = visible_vertices_to_points(vertices, normals, points, nearest, scale=0.05)
+    energy = model_to_data(vertices, normals, points, nearest)
     expected = 0.02**2 / (0.02**2 + 0.05**2) * 0.05**2  # Geman-McClure of the 2 cm gap, times scale^2
     assert torch.allclose(energy, torch.tensor([expected]), rtol=1e-4)
     energy.sum().backward()
@@ -41,7 +48,43 @@ def test_hidden_vertices_and_far_points_pull_nothing():
     assert (nearest[0, 0, :50] == -1).all() and (nearest[0, 0, 50:] >= 0).all()
     none = nearest_points(vertices, visible, points, valid, 0.01)  # every point 2 cm away
     assert (none == -1).all()
-    assert float(visible_vertices_to_points(vertices, normals, points, none, scale=0.05)) == 0.0
+    assert float(model_to_data(vertices, normals, points, none)) == 0.0
+
+
+def test_depth_pairs_give_the_dense_definition_of_e_d():
+    """E_D over the flat pairs equals its definition written densely over every (frame, view,
+    point) and (frame, view, vertex), masked: per view the robust mean of each half, the
+    model-to-data half weighted; values and gradients, with a view that has no pairs at all."""
+    g = torch.Generator().manual_seed(1)
+    B, C, P, N, scale, tangent_weight, half_weight = 3, 2, 30, 40, 0.05, 0.25, 0.7
+    vertices = (torch.randn(B, N, 3, generator=g) * 0.1).requires_grad_(True)
+    normals = torch.nn.functional.normalize(torch.randn(B, N, 3, generator=g), dim=-1)
+    points = torch.randn(B, C, P, 3, generator=g) * 0.1
+    valid = torch.rand(B, C, P, generator=g) > 0.2
+    nearest = torch.randint(-1, N, (B, C, P), generator=g)
+    to_points = torch.randint(-1, P, (B, C, N), generator=g)
+    valid[1, 0], nearest[2, 1], to_points[0, 1] = False, -1, -1  # views without pairs
+
+    def robust_mean(offset, n, usable):  # (B, C, M, 3) offsets -> (B,)
+        along = (offset * n).sum(-1, keepdim=True)
+        tangent = offset - along * n
+        squared = along[..., 0] ** 2 + tangent_weight * (tangent * tangent).sum(-1)
+        rho = squared / (squared + scale**2) * usable
+        return rho.sum(-1).div(usable.sum(-1).clamp(min=1)).sum(-1) * scale**2
+
+    index = nearest.clamp(min=0).flatten(1)[..., None].expand(-1, -1, 3)
+    data_to_model = robust_mean(points - vertices.gather(1, index).view(points.shape),
+                                normals.gather(1, index).view(points.shape), valid & (nearest >= 0))
+    matched = torch.gather(points, 2, to_points.clamp(min=0)[..., None].expand(B, C, N, 3))
+    dense = data_to_model + half_weight * robust_mean(matched - vertices[:, None], normals[:, None], to_points >= 0)
+    dense_grad, = torch.autograd.grad(dense.sum(), vertices)
+
+    pairs = depth_pairs(points, valid, normals, nearest, to_points, half_weight)
+    assert len(pairs.vertex) == int((valid & (nearest >= 0)).sum() + (to_points >= 0).sum())
+    flat = depth_point_to_plane(vertices, pairs, scale, tangent_weight)
+    flat_grad, = torch.autograd.grad(flat.sum(), vertices)
+    assert torch.allclose(flat, dense, rtol=1e-5, atol=1e-9)
+    assert torch.allclose(flat_grad, dense_grad, rtol=1e-4, atol=1e-7)
 
 
 def test_hand_contact_equals_its_definition_with_gradients():

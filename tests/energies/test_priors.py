@@ -170,6 +170,21 @@ def test_a_fist_is_human_and_fingers_bent_back_or_twisted_are_not(side):
     assert float(priors.hand_pose_prior(twisted, side)) > 1.0
 
 
+def test_both_hands_in_one_batch_score_as_each_hand_alone():
+    """`hands_pose_prior` mirrors the right hand into the left's convention: the same value and
+    gradients as the two one-sided priors added."""
+    g = torch.Generator().manual_seed(3)
+    left = (torch.randn(4, 19, 3, generator=g) * 0.6).requires_grad_(True)
+    right = (torch.randn(4, 19, 3, generator=g) * 0.6).requires_grad_(True)
+    alone = priors.hand_pose_prior(left, "L") + priors.hand_pose_prior(right, "R")
+    assert float(alone.min()) > 0  # random hands break some limit: the comparison is not of zeros
+    expected = torch.autograd.grad(alone.sum(), (left, right))
+    together = priors.hands_pose_prior(left, right)
+    assert torch.allclose(together, alone, rtol=1e-5)
+    for got, want in zip(torch.autograd.grad(together.sum(), (left, right)), expected):
+        assert torch.allclose(got, want, rtol=1e-4, atol=1e-6)
+
+
 def test_dip_following_pip_is_cheaper_than_dip_without_pip():
     follows = priors.hand_pose_from_angles(finger_angles(30, 60, 40), "L")
     alone = priors.hand_pose_from_angles(finger_angles(30, 0, 40), "L")

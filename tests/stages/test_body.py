@@ -100,6 +100,14 @@ def test_sparse_forward_is_the_forward(model):
         grads.append(pose.grad.clone())
         pose.grad = None
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-4 * float(grads[0].abs().max()))
+    # with shape free (no rest state), its gradients flow through the rest vertices as well
+    shape = params.shape.clone().requires_grad_(True)
+    grads = []
+    for forward in (lambda p: model(p).vertices[:, ids], lambda p: model.sparse_forward(p, ids).vertices):
+        forward(dataclasses.replace(params, body_pose=pose, shape=shape)).square().sum().backward()
+        grads.append(torch.cat([pose.grad.flatten(), shape.grad.flatten()]))
+        pose.grad = shape.grad = None
+    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-4 * float(grads[0].abs().max()))
 
 
 def test_correspondences_see_as_the_whole_mesh_does(model, sample):
@@ -181,6 +189,17 @@ def test_fit_recovers_a_perturbed_pose(model, sample):
         hands = model(fitted).keypoints[:, 25:67].numpy() - model(fitted).keypoints[:, [25] * 21 + [46] * 21].numpy()
     gt_hands = keypoints3d[frames, 25:67] - keypoints3d[frames][:, [25] * 21 + [46] * 21]
     assert 1000 * np.linalg.norm(hands - gt_hands, axis=-1).mean() < 20
+
+
+def test_pose_phase_budget_follows_the_frame_rate(model, sample):
+    """At dense frame rates a batch starts near its frames' poses: the pose phase gets
+    `pose_steps_dense` L-BFGS steps there, `pose_steps` below `dense_fps` (and without a rate)."""
+    cameras, cfg = Cameras.from_infos(Session.load(sample).cameras), load_config().body
+    assert cfg.pose_steps_dense < cfg.pose_steps
+    for fps, steps in ((30.0, cfg.pose_steps_dense), (cfg.dense_fps, cfg.pose_steps_dense), (5.0, cfg.pose_steps),
+                       (None, cfg.pose_steps)):
+        fitter = body.BodyFitter(model, cameras, cfg, fps)
+        assert fitter.steps == {"orient_steps": cfg.orient_steps, "pose_steps": steps, "full_steps": cfg.full_steps}
 
 
 def frame_2_fitter(model, sample) -> tuple[BodyParams, body.BodyObservations, body.BodyFitter]:

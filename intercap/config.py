@@ -172,7 +172,9 @@ class GlobalConfig:
     window_frames: int = 48  # frames optimised together; memory grows with it, the share fitted twice shrinks
     window_overlap: int = 8  # frames a window shares with the next (re-optimised with more future)
     window_history: int = 2  # of the shared frames, those held fixed at the previous window's result
-    steps: int = 15  # L-BFGS steps per window
+    steps: int = 15  # L-BFGS steps per window (sessions below body.dense_fps)
+    steps_dense: int = 12  # at body.dense_fps and above, where the per-frame fits start it closer (30 fps: 19 %
+    # faster, MPJPE +4 %, penetration +5 %; at 5 fps 12 steps cost penetration 9 %: BENCHMARKS.md)
     inner_iterations: int = 8
     ftol: float = 1.0e-6
     correspondence_every: int = 5  # E_D / E_O data association refreshed every this many steps

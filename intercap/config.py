@@ -71,8 +71,9 @@ class ObjectConfig:
     occluder_margin_m: float = 0.03  # measured this much in front of the object = occluded there
     iterations: int = 60  # at most, per frame (early stopping ends most fits at 30 fps in 10-20)
     stop_tolerance: float = 1e-3  # relative E_O decrease that counts as progress
-    stop_patience: int = 2  # steps without progress before the step size shrinks (or the fit stops); 3: 16 % more
-    # renders for the same ADD-S at 30 fps (BENCHMARKS.md)
+    stop_patience: int = 3  # steps without progress before the step size shrinks (or the fit stops)
+    stop_patience_dense: int = 2  # stop_patience at run.dense_fps and above (30 fps: 14 % fewer renders, same ADD-S;
+    # at 5 fps 2 cost ADD-S 9 %: BENCHMARKS.md)
     init_iterations: int = 15  # per hypothesis, before the best is refined
     init_global_tries: int = 2  # FPFH RANSAC registrations among the hypotheses
     init_ransac_iterations: int = 5000
@@ -142,10 +143,9 @@ class BodyConfig:
     w_penetration: float = 1.0e5
     fit_expression: bool = False  # anny has no face landmarks in our keypoint set: expression stays neutral
     orient_steps: int = 5  # L-BFGS steps of the phase that moves only orientation + translation
-    pose_steps: int = 15  # + body pose and shape, keypoints only (sessions below `dense_fps`)
-    pose_steps_dense: int = 10  # the same at `dense_fps` and above, where a batch's frames lie near the previous
+    pose_steps: int = 15  # + body pose and shape, keypoints only
+    pose_steps_dense: int = 10  # pose_steps at run.dense_fps and above, where a batch's frames lie near the previous
     # batch's last fit (30 fps: body 16 % faster, surface +0.4 %; at 5 fps 10 steps cost 3 %: BENCHMARKS.md)
-    dense_fps: float = 20.0
     full_steps: int = 20  # + hands, with the depth term and self-penetration (10: stoops stay 2x off, BENCHMARKS.md)
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
@@ -172,8 +172,8 @@ class GlobalConfig:
     window_frames: int = 48  # frames optimised together; memory grows with it, the share fitted twice shrinks
     window_overlap: int = 8  # frames a window shares with the next (re-optimised with more future)
     window_history: int = 2  # of the shared frames, those held fixed at the previous window's result
-    steps: int = 15  # L-BFGS steps per window (sessions below body.dense_fps)
-    steps_dense: int = 12  # at body.dense_fps and above, where the per-frame fits start it closer (30 fps: 19 %
+    steps: int = 15  # L-BFGS steps per window
+    steps_dense: int = 12  # steps at run.dense_fps and above, where the per-frame fits start it closer (30 fps: 19 %
     # faster, MPJPE +4 %, penetration +5 %; at 5 fps 12 steps cost penetration 9 %: BENCHMARKS.md)
     inner_iterations: int = 8
     ftol: float = 1.0e-6
@@ -271,6 +271,7 @@ class RunConfig:
     force: bool = False  # recompute stages whose output is already saved
     workers: int = 0  # processes the fitting stages cut a take into (0: one per CPU core; on a GPU, one; N > 1 share it)
     min_frames_per_worker: int = 48  # a take shorter than twice this runs in one process
+    dense_fps: float = 20.0  # sessions at this frame rate and above take the fits' *_dense budgets (`for_frame_rate`)
 
 
 @dataclass
@@ -315,6 +316,23 @@ def _coerce(value: Any, current: Any, key: str) -> Any:
     if isinstance(current, list) and isinstance(parsed, str):
         return [p.strip() for p in parsed.split(",") if p.strip()]
     return parsed
+
+
+# The budgets `for_frame_rate` swaps in at dense frame rates: (section, setting, its dense twin).
+DENSE_BUDGETS = (("body", "pose_steps", "pose_steps_dense"), ("global_", "steps", "steps_dense"),
+                 ("object", "stop_patience", "stop_patience_dense"))
+
+
+def for_frame_rate(cfg: Config, fps: float) -> Config:
+    """The settings a session at `fps` runs with: at `run.dense_fps` and above, each budget in
+    DENSE_BUDGETS replaced by its dense twin. Frames close in time start their fits near the
+    answer (the previous frame's object pose, the previous batch's body, the per-frame results),
+    so fewer steps reach the same place; sparse takes keep the full budgets."""
+    if fps < cfg.run.dense_fps:
+        return cfg
+    sections = {name: dataclasses.replace(getattr(cfg, name), **{setting: getattr(getattr(cfg, name), dense)})
+                for name, setting, dense in DENSE_BUDGETS}
+    return dataclasses.replace(cfg, **sections)
 
 
 # Sections whose name is a Python keyword: written `global` in YAML and overrides.

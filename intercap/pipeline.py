@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 from intercap import parallel
-from intercap.config import Config, save_config
+from intercap.config import Config, for_frame_rate, save_config
 from intercap.io.files import read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -179,7 +179,7 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
     metrics = read_json(metrics_path) if metrics_path.exists() else {}
 
     try:
-        _run_stages(session, cfg, out_dir, names, metrics, progress)
+        _run_stages(session, for_frame_rate(cfg, session.fps), out_dir, names, metrics, progress)
     finally:
         parallel.shutdown()  # the stages' worker processes
     if cfg.report.enabled:  # OUT/report/index.html; a failure there never loses the results above

@@ -98,3 +98,26 @@ def test_cli_validate_and_run_errors(tmp_path, capsys, monkeypatch):
     assert "session.yaml" in capsys.readouterr().out
     assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "planned"]) == 2
     assert "not implemented yet" in capsys.readouterr().err
+
+
+def test_dense_frame_rates_run_with_the_dense_budgets(tiny_session, tmp_path, monkeypatch):
+    """At run.dense_fps and above the stages get each *_dense budget in place of its plain one
+    (a 30 fps take); below it, and in OUT/config.yaml, the settings stay as given."""
+    import dataclasses
+
+    import intercap.pipeline as pipeline
+    from intercap.config import DENSE_BUDGETS, for_frame_rate
+
+    cfg = load_config(overrides=["run.stages=prepare"])
+    seen = []
+    stage = pipeline.STAGES["prepare"]
+    monkeypatch.setitem(pipeline.STAGES, "prepare", dataclasses.replace(
+        stage, run=lambda session, cfg, out, progress: seen.append(cfg) or {}))
+    run_pipeline(tiny_session, tmp_path / "out", cfg, progress=False)  # the tiny session is 30 fps
+    for section, setting, dense in DENSE_BUDGETS:
+        given = getattr(cfg, section)
+        assert getattr(given, setting) != getattr(given, dense)  # the test means something
+        assert getattr(getattr(seen[0], section), setting) == getattr(given, dense)
+        assert getattr(getattr(for_frame_rate(cfg, 5.0), section), setting) == getattr(given, setting)
+        assert getattr(getattr(for_frame_rate(cfg, cfg.run.dense_fps), section), setting) == getattr(given, dense)
+    assert load_config(tmp_path / "out" / "config.yaml").body.pose_steps == cfg.body.pose_steps

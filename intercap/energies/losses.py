@@ -155,8 +155,7 @@ def depth_pairs(points: torch.Tensor, point_valid: torch.Tensor, normals: torch.
     (B, N, 3), `nearest` (B, C, P) from `nearest_visible_vertices` and `nearest_to_vertices`
     (B, C, N) from `nearest_points` (None: the model-to-data half is off), that half weighted
     `model_to_data`. Each half is a mean per view over its pairs, as in PROX's E_D."""
-    B, C, P = nearest.shape
-    N = normals.shape[1]
+    B, N = normals.shape[:2]
 
     def half(mask, vertex_of, point_of, weight):
         b, c, i = torch.nonzero(mask, as_tuple=True)

@@ -508,14 +508,10 @@ PHASES = (
 class BodyFitter:
     """Fits batches of frames; holds the model, cameras, priors' tables and the sphere proxy."""
 
-    def __init__(self, model, cameras: Cameras, cfg, fps: float | None = None):
+    def __init__(self, model, cameras: Cameras, cfg):
         self.model = model
         self.cameras = cameras
         self.cfg = cfg
-        # each phase's L-BFGS steps; the pose phase needs fewer where the frames are dense in time
-        self.steps = {phase.steps_key: getattr(cfg, phase.steps_key) for phase in PHASES}
-        if fps is not None and fps >= cfg.dense_fps:
-            self.steps["pose_steps"] = cfg.pose_steps_dense
         names = model.body_joint_names
         device = cameras.K.device
         self.free_bones = torch.tensor([i for i, n in enumerate(names) if not n.startswith(FROZEN_BONE_PREFIXES)],
@@ -758,7 +754,7 @@ class BodyFitter:
 
             if "depth" in phase.terms:
                 state["matches"] = self.correspondences(current(), obs)
-            result = minimise(list(leaves.values()), energy, max_steps=self.steps[phase.steps_key],
+            result = minimise(list(leaves.values()), energy, max_steps=getattr(self.cfg, phase.steps_key),
                               inner_iterations=self.cfg.inner_iterations, ftol=self.cfg.ftol, monitor=refresh)
             params = current().detach()
             stats[phase.name] = {"energy": result.energy, "steps": result.steps,
@@ -1026,7 +1022,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
                                      bcfg.keypoint_view_check_px)
     person = PersonPoints(session, cameras, bcfg, out_dir)
-    fitter = BodyFitter(model, cameras, bcfg, session.fps)
+    fitter = BodyFitter(model, cameras, bcfg)
     if (out_dir / "prepare" / "ground.json").exists():  # one view hides the legs: they must not sink through it
         from intercap.stages.prepare import load_ground
 

@@ -429,8 +429,7 @@ class GlobalFitter:
 
         with torch.no_grad():
             before = {k: float(v.sum()) for k, v in self.energy_terms(*current(), data, state["matches"], rest).items()}
-        steps = g.steps_dense if self.fps >= self.bcfg.dense_fps else g.steps
-        result = minimise(list(leaves.values()), energy, max_steps=steps, inner_iterations=g.inner_iterations,
+        result = minimise(list(leaves.values()), energy, max_steps=g.steps, inner_iterations=g.inner_iterations,
                           ftol=g.ftol, monitor=refresh)
         with torch.no_grad():
             body, R, centre = (x.detach() for x in current())

@@ -191,17 +191,6 @@ def test_fit_recovers_a_perturbed_pose(model, sample):
     assert 1000 * np.linalg.norm(hands - gt_hands, axis=-1).mean() < 20
 
 
-def test_pose_phase_budget_follows_the_frame_rate(model, sample):
-    """At dense frame rates a batch starts near its frames' poses: the pose phase gets
-    `pose_steps_dense` L-BFGS steps there, `pose_steps` below `dense_fps` (and without a rate)."""
-    cameras, cfg = Cameras.from_infos(Session.load(sample).cameras), load_config().body
-    assert cfg.pose_steps_dense < cfg.pose_steps
-    for fps, steps in ((30.0, cfg.pose_steps_dense), (cfg.dense_fps, cfg.pose_steps_dense), (5.0, cfg.pose_steps),
-                       (None, cfg.pose_steps)):
-        fitter = body.BodyFitter(model, cameras, cfg, fps)
-        assert fitter.steps == {"orient_steps": cfg.orient_steps, "pose_steps": steps, "full_steps": cfg.full_steps}
-
-
 def frame_2_fitter(model, sample) -> tuple[BodyParams, body.BodyObservations, body.BodyFitter]:
     """(true params, frame 2's observations, a body fitter with no floor) of the sample."""
     session = Session.load(sample)

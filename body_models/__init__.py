@@ -38,10 +38,15 @@ def load_body_model(
 _SHARED: dict = {}
 
 
+def setting_key(cfg) -> tuple:
+    """A hashable key of a `BodyModelConfig`: what caches of per-model results are keyed on."""
+    return tuple(sorted(dataclasses.asdict(cfg).items()))
+
+
 def shared_model(cfg, device="cpu") -> BodyModel:
     """`load_from_config`, built once per process and setting (construction takes seconds, and a
     worker process fits one stage after another): shared, so callers must not change it."""
-    key = (tuple(sorted(dataclasses.asdict(cfg).items())), str(device))
+    key = (setting_key(cfg), str(device))
     if key not in _SHARED:
         _SHARED[key] = load_from_config(cfg, device)
     return _SHARED[key]
@@ -60,5 +65,5 @@ def load_from_config(cfg, device="cpu") -> BodyModel:
 
 __all__ = [
     "BodyModel", "BodyOutput", "BodyParams", "KEYPOINT_NAMES", "NUM_BODY_HANDS",
-    "axis_angle_to_matrix", "matrix_to_axis_angle", "load_body_model", "load_from_config", "shared_model",
+    "axis_angle_to_matrix", "matrix_to_axis_angle", "load_body_model", "load_from_config", "setting_key", "shared_model",
 ]

@@ -42,6 +42,7 @@ import open3d as o3d
 import torch
 from tqdm import tqdm
 
+from intercap.body_models import setting_key, shared_model
 from intercap.io.files import per_frame_result, publish, save_npy, save_npz
 
 log = logging.getLogger(__name__)
@@ -275,16 +276,10 @@ _REGIONS: dict = {}
 _REST: dict = {}  # body model setting -> rest vertices (V, 3), filled with _REGIONS
 
 
-def _model_key(body_model_cfg) -> tuple:
-    return tuple(sorted(dataclasses.asdict(body_model_cfg).items()))
-
-
 def body_regions(body_model_cfg) -> tuple[dict[str, np.ndarray], int]:
     """The body model's contact regions (name -> vertex ids) and vertex count; kept per
     model setting, since building a model takes seconds and the regions never change."""
-    from intercap.body_models import shared_model
-
-    key = _model_key(body_model_cfg)
+    key = setting_key(body_model_cfg)
     if key not in _REGIONS:
         model = shared_model(body_model_cfg)
         _REGIONS[key] = ({r: ids.cpu().numpy() for r, ids in model.contact_regions.items()}, model.num_vertices)
@@ -349,7 +344,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
              overlap_2d=overlap_2d & judged_2d, distance_3d=distance_3d & judged_3d, overlap_px=counts,
              mask_source=np.array(mask_source), region_vertex_ids=np.concatenate(ids).astype(np.int32),
              region_sizes=np.array([len(i) for i in ids], np.int32),
-             rest_vertices=_REST.get(_model_key(dataclasses.replace(cfg.body_model, name=session.body_model)),
+             rest_vertices=_REST.get(setting_key(dataclasses.replace(cfg.body_model, name=session.body_model)),
                                      np.zeros((0, 3), np.float32)),
              **extra)
     save_npy(stage_dir / "contact.npy", contact.astype(bool))

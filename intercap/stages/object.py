@@ -32,6 +32,7 @@ to check.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -106,6 +107,17 @@ def same_pose(a, b, distance_m: float, angle_deg: float = 10.0) -> bool:
     """Poses (R, t) within `distance_m` (translation) and `angle_deg` (rotation) of each other."""
     cos = (np.trace(np.asarray(a[0]).T @ np.asarray(b[0])) - 1) / 2
     return bool(np.linalg.norm(np.asarray(a[1]) - np.asarray(b[1])) < distance_m and cos > np.cos(np.radians(angle_deg)))
+
+
+@contextlib.contextmanager
+def open3d_threads(n: int):
+    """Open3D's parallel loops use at most `n` threads inside the block."""
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(n)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def distinct(poses: list, distance_m: float, taken: list = ()) -> list:
@@ -428,7 +440,13 @@ class ObjectTracker:
     def registration_hypotheses(self, points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         """Candidate object->world poses (R, t) registering the mesh to observed points: PCA alignments with
         every proper axis flip, and FPFH RANSAC global registrations, each refined by ICP; the
-        `init_keep` distinct best (ICP fitness), and the best one's quarter turns, refined again."""
+        `init_keep` distinct best (ICP fitness), and the best one's quarter turns, refined again.
+        Open3D runs single-threaded here: its RANSAC's threads draw their samples in whatever order
+        the scheduler gives them, so a run could not be repeated (Open3D issue 7475)."""
+        with open3d_threads(1):
+            return self._registration_hypotheses(points)
+
+    def _registration_hypotheses(self, points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         cfg = self.cfg
         voxel = self._voxel()
         scene = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points)).voxel_down_sample(voxel)

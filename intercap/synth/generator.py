@@ -24,6 +24,7 @@ import io
 import json
 import time
 import zipfile
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +33,8 @@ import numpy as np
 import torch
 import trimesh
 import yaml
+
+from intercap.parallel import cpu_count
 
 WORLD_NOTE = "metres; any right-handed frame; gravity is not assumed to be an axis"
 FLOOR_TILE = 0.5
@@ -771,28 +774,39 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     t_render = time.perf_counter()
     views_done = 0
     ext = "jpg" if cfg.color_format == "jpg" else "png"
+    def sensor_files(f: int, v: int, cam: Camera, r: dict) -> None:
+        """One view's noisy colour and depth, masks and keypoints, written (in a worker thread: the
+        noise and the PNG compression release the GIL while the next view renders)."""
+        name = f"{f:06d}"
+        colour = noisy_colour(r["color"], frame_rng(cfg.seed, 1, f, v), cfg.color_noise)
+        write_colour(out / cam.name / "color" / f"{name}.{ext}", colour, cfg)
+        if cfg.clean_depth:
+            depth = clean_depth_mm(r["depth"], cfg)
+        else:
+            depth = kinect_depth(r["depth"], r["color"], frame_rng(cfg.seed, 2, f, v), cfg)
+        write_png(out / cam.name / "depth" / f"{name}.png", depth)
+        if cfg.masks:
+            write_png(out / cam.name / "masks" / "person" / f"{name}.png", r["person"].astype(np.uint8) * 255)
+            write_png(out / cam.name / "masks" / "object" / f"{name}.png", r["object"].astype(np.uint8) * 255)
+        if cfg.keypoints:
+            people = simulate_openpose(anim.keypoints[f], cam, r["depth"], frame_rng(cfg.seed, 3, f, v), cfg)
+            write_json(out / cam.name / "keypoints" / f"{name}.json", people)
+
+    threads = min(8, cpu_count())
+    pending: list = []
     try:
-        for f in tqdm(range(T), desc="render", unit="frame", disable=cfg.quiet):
-            renderer.set_frame(anim.vertices[f], anim.object_poses[f])
-            for v, cam in enumerate(cams):
-                if v == drop_view and f in dropped:
-                    continue
-                r = renderer.render(v)
-                name = f"{f:06d}"
-                colour = noisy_colour(r["color"], frame_rng(cfg.seed, 1, f, v), cfg.color_noise)
-                write_colour(out / cam.name / "color" / f"{name}.{ext}", colour, cfg)
-                if cfg.clean_depth:
-                    depth = clean_depth_mm(r["depth"], cfg)
-                else:
-                    depth = kinect_depth(r["depth"], r["color"], frame_rng(cfg.seed, 2, f, v), cfg)
-                write_png(out / cam.name / "depth" / f"{name}.png", depth)
-                if cfg.masks:
-                    write_png(out / cam.name / "masks" / "person" / f"{name}.png", r["person"].astype(np.uint8) * 255)
-                    write_png(out / cam.name / "masks" / "object" / f"{name}.png", r["object"].astype(np.uint8) * 255)
-                if cfg.keypoints:
-                    people = simulate_openpose(anim.keypoints[f], cam, r["depth"], frame_rng(cfg.seed, 3, f, v), cfg)
-                    write_json(out / cam.name / "keypoints" / f"{name}.json", people)
-                views_done += 1
+        with ThreadPoolExecutor(threads) as pool:
+            for f in tqdm(range(T), desc="render", unit="frame", disable=cfg.quiet):
+                renderer.set_frame(anim.vertices[f], anim.object_poses[f])
+                for v, cam in enumerate(cams):
+                    if v == drop_view and f in dropped:
+                        continue
+                    pending.append(pool.submit(sensor_files, f, v, cam, renderer.render(v)))
+                    views_done += 1
+                while len(pending) > 2 * threads:  # a bounded queue: rendered images wait in memory
+                    pending.pop(0).result()
+            for job in pending:
+                job.result()  # re-raises a worker's error
     finally:
         renderer.close()
     elapsed = time.perf_counter() - t_render

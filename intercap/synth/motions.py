@@ -581,6 +581,18 @@ class HandGeometry:
         return torch.cat([self.hand] + list(self.fingers))
 
 
+def hand_vertices(geom: dict) -> tuple[torch.Tensor, dict]:
+    """The vertex ids the hand solvers read (both hands' palm patches, palms and fingers) and `geom`
+    re-indexed into them: `model.sparse_forward` skins those alone, where the full 13,718-vertex
+    forward was most of an IK step's cost."""
+    ids = torch.unique(torch.cat([torch.cat([g.palm_patch, g.whole]) for g in geom.values()]))
+    lookup = torch.full((int(ids.max()) + 1,), -1, dtype=torch.long)
+    lookup[ids] = torch.arange(len(ids))
+    local = {side: HandGeometry(lookup[g.palm_patch], lookup[g.hand], [lookup[f] for f in g.fingers])
+             for side, g in geom.items()}
+    return ids, local
+
+
 def dominant_bones(model) -> np.ndarray:
     """(V,) index into model.joint_names of the bone with the largest skinning weight (anny core)."""
     core = model.core
@@ -698,16 +710,21 @@ def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, s
     poses = torch.as_tensor(obj_poses[frames], dtype=dtype)
     tgt = {s: [torch.as_tensor(a[frames], dtype=dtype) for a in v] for s, v in targets.items()}
     fixed_pose = sub.body_pose.detach()
+    vertex_ids, hands = hand_vertices(geom)
+    rest = model.rest_state(sub, vertex_ids)
+
+    def posed(pose):
+        return model.sparse_forward(dataclasses.replace(sub, body_pose=fixed_pose.index_copy(1, ids, pose)), vertex_ids, rest)
 
     def loss_fn():
-        out = model(dataclasses.replace(sub, body_pose=fixed_pose.index_copy(1, ids, var)))
+        out = posed(var)
         loss = (lam[None, :, None] * (var - base) ** 2).sum()
         for side, (c_t, n_t, d_t) in tgt.items():
-            c, n, d = palm_frames(out.keypoints, out.vertices, geom[side], side)
+            c, n, d = palm_frames(out.keypoints, out.vertices, hands[side], side)
             err = ((c - c_t) ** 2).sum(-1) / 0.01**2 + 10 * (1 - (n * n_t).sum(-1)) + 10 * (1 - (d * d_t).sum(-1))
-            hand = out.vertices[:, geom[side].hand]
+            hand = out.vertices[:, hands[side].hand]
             inside = penetration(sdf, to_object_frame(hand, poses), 0.0) / 0.002**2
-            inside = inside + below_floor(out.vertices[:, geom[side].whole])
+            inside = inside + below_floor(out.vertices[:, hands[side].whole])
             loss = loss + (w * (err + inside)).sum()
         return loss
 
@@ -716,10 +733,10 @@ def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, s
     if retries <= 0:
         return body_pose
     with torch.no_grad():
-        out = model(dataclasses.replace(sub, body_pose=fixed_pose.index_copy(1, ids, var)))
+        out = posed(var)
         error = torch.zeros(len(frames), dtype=dtype)
         for side, (c_t, _, _) in tgt.items():
-            c, _, _ = palm_frames(out.keypoints, out.vertices, geom[side], side)
+            c, _, _ = palm_frames(out.keypoints, out.vertices, hands[side], side)
             error = torch.maximum(error, (c - c_t).norm(dim=-1))
     bad = frames[((error > 0.004) & (w > 0.5)).numpy()]
     if len(bad) == 0:
@@ -769,14 +786,16 @@ def solve_finger_grasp(model, params, frames: np.ndarray, geom: dict, sides: lis
         init = {s: (torch.full((F_, 5), relaxed, dtype=dtype), torch.zeros(F_, 3, dtype=dtype)) for s in sides}
     curls = {s: init[s][0].clone().to(dtype).requires_grad_(True) for s in sides}
     thumbs = {s: init[s][1].clone().to(dtype).requires_grad_(True) for s in sides}
+    vertex_ids, local = hand_vertices(geom)
+    rest = model.rest_state(sub, vertex_ids)
 
     def loss_fn():
         hands = {s: finger_pose(model, s, curls[s], thumbs[s]) for s in sides}
-        out = model(dataclasses.replace(sub, left_hand_pose=hands.get("L", sub.left_hand_pose),
-                                        right_hand_pose=hands.get("R", sub.right_hand_pose)))
+        out = model.sparse_forward(dataclasses.replace(sub, left_hand_pose=hands.get("L", sub.left_hand_pose),
+                                                       right_hand_pose=hands.get("R", sub.right_hand_pose)), vertex_ids, rest)
         loss = 0.0
         for s in sides:
-            g = geom[s]
+            g = local[s]
             loss = loss + penetration(sdf, to_object_frame(out.vertices[:, g.hand], poses), 0.001).sum() / 0.002**2
             loss = loss + below_floor(out.vertices[:, g.whole]).sum()
             for f, ids in enumerate(g.fingers):

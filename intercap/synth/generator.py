@@ -774,6 +774,7 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     t_render = time.perf_counter()
     views_done = 0
     ext = "jpg" if cfg.color_format == "jpg" else "png"
+
     def sensor_files(f: int, v: int, cam: Camera, r: dict) -> None:
         """One view's noisy colour and depth, masks and keypoints, written (in a worker thread: the
         noise and the PNG compression release the GIL while the next view renders)."""

@@ -341,3 +341,29 @@ def test_upper_body_preset_frames_the_trunk_not_the_feet(tmp_path):
     neck, ankles = 1, [11, 14]  # BODY_25
     assert 0 < v[neck] < cfg.height
     assert (v[ankles] > cfg.height).all()  # below the image
+
+
+def test_hand_solvers_see_the_same_hands_on_the_sparse_forward():
+    """The IK and grasp solvers skin only the hands' vertices (`hand_vertices`): re-indexed, the palm
+    frames and the hand and finger vertices equal the full forward's on a random posed body."""
+    import torch
+
+    from intercap.synth.generator import cached_body_model
+    from intercap.synth.motions import hand_geometry, hand_vertices, palm_frames
+
+    model = cached_body_model()
+    rest = model(model.init_params(1))
+    geom = hand_geometry(model, rest.vertices[0].numpy(), rest.keypoints[0].numpy())
+    ids, local = hand_vertices(geom)
+    params = model.init_params(3)
+    generator = torch.Generator().manual_seed(0)
+    params.body_pose[:] = 0.3 * torch.randn(params.body_pose.shape, generator=generator)
+    params.left_hand_pose[:] = 0.3 * torch.randn(params.left_hand_pose.shape, generator=generator)
+    full = model(params)
+    sparse = model.sparse_forward(params, ids, model.rest_state(params, ids))
+    assert len(ids) < model.num_vertices / 3
+    for side in geom:
+        for a, b in zip(palm_frames(full.keypoints, full.vertices, geom[side], side),
+                        palm_frames(sparse.keypoints, sparse.vertices, local[side], side)):
+            assert torch.allclose(a, b, atol=1e-4)
+        assert torch.allclose(full.vertices[:, geom[side].whole], sparse.vertices[:, local[side].whole], atol=1e-5)

@@ -138,6 +138,10 @@ class BodyConfig:
     w_shape: float = 100.0
     shared_shape: bool = True  # one phenotype per batch whose frames all have >= 2 keypoint views (one person; 10-20 %
     # faster); with fewer views each frame its own: one view's stooping frames would bend the upright ones' shape
+    shape_batches: int = 2  # the phenotype is fitted on each chunk's first batches this many, then held at their
+    # mean (one person): re-fitted on every batch it drifted from batch to batch (its prior is weak), so the global
+    # stage's sequence mean fitted no batch's poses (150 frames in one chunk of 32-frame batches: surface 22 -> 6.2 mm;
+    # 1 batch: 6.0 mm there but penetration +18 % on the held-out session; BENCHMARKS.md); 0: every batch
     size_from_depth: bool = True  # template's stature from the 3D torso keypoints (children, tall people; one view)
     w_expression: float = 10.0
     w_penetration: float = 1.0e5

@@ -14,7 +14,9 @@ As SMPLify-X, in phases (`PHASES`): orientation and translation from the torso
 keypoints, then pose and shape from all keypoints, then everything with the
 depth term. Frames are fitted in batches (one L-BFGS over the batch; the frames
 do not interact), initialised per frame by aligning the previous batch's pose
-to the triangulated torso keypoints. A frame with too little evidence (see
+to the triangulated torso keypoints; the phenotype is fitted on the first
+`shape_batches` batches and held at their mean after (one person: re-fitted per
+batch it drifted). A frame with too little evidence (see
 `usable_frames`) is marked invalid and written as NaN, never invented.
 
 Outputs (SESSION_FORMAT.md): body_params.npz (the model's parameters per
@@ -535,6 +537,7 @@ class BodyFitter:
         self.subset_in_ring = torch.searchsorted(self.ring_vertices, self.subset)
         self.spheres = BodySpheres.from_model(model)
         self.shape_center = 0.5  # the shape prior's centre: the average person until `size_template`
+        self.held_shape = None  # (num_shape,) the person's phenotype once `hold_shape` has it: fits keep it fixed
         self.ground = None  # (point, normal) tensors: E_G keeps the body above the floor when set
 
     # -- size ---------------------------------------------------------------------------
@@ -691,8 +694,11 @@ class BodyFitter:
         (its rest state is then computed once per group and evaluation, not once per frame). Default:
         the whole batch one group where `shares_shape`, else each frame its own. A
         batch of competing starts (`refit_from_evidence`) gives each start its own group: a wrong start
-        must not bend the shape of the others."""
+        must not bend the shape of the others. With `held_shape` set, every frame has that phenotype and
+        shape does not move."""
         params = init.clone()
+        if self.held_shape is not None:
+            params.shape[:] = self.held_shape
         free = self.free_bones
         B = params.batch_size
         device = params.shape.device
@@ -704,7 +710,8 @@ class BodyFitter:
                                                                        "amin")  # a frame of each group
         stats = {}
         for phase in PHASES:
-            names = [n for n in phase.variables if n != "expression" or self.cfg.fit_expression]
+            names = [n for n in phase.variables if (n != "expression" or self.cfg.fit_expression)
+                     and (n != "shape" or self.held_shape is None)]
             leaves = {n: getattr(params, n).detach().clone() for n in names}
             if "body_pose" in leaves:
                 leaves["body_pose"] = params.body_pose[:, free].detach().clone()
@@ -1042,6 +1049,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     prior = np.full(T, np.nan)  # the learned pose prior's energy of each frame's fit
     reinitialised = np.zeros(T, bool)
     sized = None  # the template's phenotype from the person's measured size (NaN: the template's own kept)
+    shape_estimates = {}  # first row of a batch -> the phenotype fitted on it; `shape_batches` of them, then held
     if checkpoint.exists():
         saved = np.load(checkpoint)
         fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype, device=model.faces.device)
@@ -1050,6 +1058,10 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
             gap, prior, reinitialised = saved["fit_to_data_mm"], saved["pose_prior"], saved["reinitialised"]
         if "sized_shape" in saved:
             sized = saved["sized_shape"]
+        if "shape_estimates" in saved:  # those of batches still done (a resumed batch estimates again)
+            shape_estimates = {int(row): value for row, value in zip(saved["shape_estimate_rows"], saved["shape_estimates"])
+                               if done[row]}
+            hold_shape(fitter, list(shape_estimates.values()), bcfg.shape_batches)
         log.info("body: resuming frames %d-%d, %d of %d already fitted", chunk.lo, chunk.hi - 1, int(done.sum()), T)
         queue.put(int(done.sum()))
 
@@ -1111,14 +1123,30 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
             on_points = np.flatnonzero(sub_gap <= gap_limit)
             if len(on_points):  # the next batch starts from the last fit that lies on its points, not a failed one
                 template = params[int(on_points[-1])]
+                if fitter.held_shape is None and bcfg.shape_batches > 0:
+                    shape_estimates[int(batch[0])] = params.shape[on_points].mean(0).cpu().numpy()
+                    if hold_shape(fitter, list(shape_estimates.values()), bcfg.shape_batches):
+                        log.info("body: phenotype held from frame %d on (mean of %d batches' fits)",
+                                 int(ids[keep][-1]) + 1, len(shape_estimates))
         done[batch] = True
         seconds[batch] = (time.perf_counter() - start) / len(batch)
         queue.put(len(batch))
         save_npz(checkpoint, **fitted.to_numpy_dict(), done=done, valid=valid, reprojection_px=reproj, seconds=seconds,
                  fit_to_data_mm=gap, pose_prior=prior, reinitialised=reinitialised,
+                 shape_estimates=np.array(list(shape_estimates.values()), np.float32).reshape(-1, model.num_shape),
+                 shape_estimate_rows=np.array(list(shape_estimates), np.int64),
                  **({} if sized is None else {"sized_shape": sized}))
     return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds,
             "fit_to_data_mm": gap, "reinitialised": reinitialised, "keypoints_rejected": keypoint_source.rejected}
+
+
+def hold_shape(fitter: BodyFitter, estimates: list, batches: int) -> bool:
+    """Hold the fitter's phenotype at the mean of `estimates` once there are `batches` of them (one
+    person, one shape: later batches fit pose only). True when it holds it now."""
+    if batches <= 0 or len(estimates) < batches or fitter.held_shape is not None:
+        return False
+    fitter.held_shape = torch.as_tensor(np.mean(estimates, 0), dtype=fitter.model.dtype, device=fitter.cameras.K.device)
+    return True
 
 
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")

@@ -271,7 +271,7 @@ def test_stage_marks_frames_without_evidence(sample, tmp_path):
         for kind in ("keypoints/000001.json", "depth/000001.png", "color/000001.jpg"):
             (broken / cam / kind).unlink()
     out = tmp_path / "out"
-    metrics = run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2"]), stages=["detect", "body"],
+    metrics = run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2", "body.shape_batches=1"]), stages=["detect", "body"],
                            progress=False)["body"]
     assert metrics["frames_fitted"] == FRAMES - 1
     saved = np.load(out / "body_params.npz")
@@ -286,6 +286,9 @@ def test_stage_marks_frames_without_evidence(sample, tmp_path):
     assert np.isnan(error[1]) and (error[[0, 2, 3]] < 30).all(), error
     assert np.load(out / "body_faces.npy").shape[1] == 3
     assert np.isfinite(saved["shape_mean"]).all()
+    # one person: the phenotype fitted on the first batch is held for the second (`body.shape_batches=1`)
+    assert np.array_equal(saved["shape"][2:], saved["shape"][[0, 0]]), saved["shape"]
+    assert not np.allclose(saved["shape"][0], 0.5, atol=1e-3)  # fitted, not the template's
 
     # Resume: forget the second batch; the rerun fits only it and gives the same result.
     checkpoint = out / "body" / f"progress_{0:06d}_{FRAMES:06d}.npz"  # one chunk: too few frames for two workers
@@ -293,9 +296,10 @@ def test_stage_marks_frames_without_evidence(sample, tmp_path):
     progress["done"][2:] = False
     np.savez(checkpoint, **progress)
     (out / "body" / "DONE.json").unlink()
-    run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2"]), stages=["detect", "body"],
+    run_pipeline(broken, out, load_config(overrides=["body.batch_frames=2", "body.shape_batches=1"]), stages=["detect", "body"],
                  progress=False)
     assert np.allclose(np.load(out / "keypoints3d.npy"), keypoints, atol=1e-4, equal_nan=True)
+    assert np.array_equal(np.load(out / "body_params.npz")["shape"][2:], saved["shape"][[0, 0]])  # held as before
 
 
 def test_detect_stage_feeds_the_body_fit_when_the_session_has_no_keypoints(sample, tmp_path):

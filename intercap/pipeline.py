@@ -131,10 +131,12 @@ def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: 
     and OUT/metrics.json after each."""
     metrics_path = out_dir / "metrics.json"
     upstream: list[str] = []
-    for name in names:
+    for name in available_stages()[:available_stages().index(names[-1]) + 1]:
         stage = STAGES[name]
         fingerprint = stage_fingerprint(stage, cfg, session.root, upstream)
-        upstream.append(fingerprint)
+        upstream.append(fingerprint)  # also of stages not run now: `--stages global` finds the full run's work
+        if name not in names:
+            continue
         marker = out_dir / name / "DONE.json"
         if marker.exists() and not cfg.run.force:
             done = read_json(marker)

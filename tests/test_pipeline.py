@@ -121,3 +121,17 @@ def test_dense_frame_rates_run_with_the_dense_budgets(tiny_session, tmp_path, mo
         assert getattr(getattr(for_frame_rate(cfg, 5.0), section), setting) == getattr(given, setting)
         assert getattr(getattr(for_frame_rate(cfg, cfg.run.dense_fps), section), setting) == getattr(given, dense)
     assert load_config(tmp_path / "out" / "config.yaml").body.pose_steps == cfg.body.pose_steps
+
+
+def test_a_stage_run_alone_keeps_the_work_of_the_full_run(tmp_path):
+    """A stage's fingerprint covers the stages before it whether or not they run now: rerunning one
+    stage alone (`--stages detect`, say after a crash) skips or resumes it, never wipes it."""
+    cfg = load_config(overrides=["prepare.calib_frames=2", "prepare.ground_frames=3"])
+    run_pipeline(SAMPLE, tmp_path, cfg, stages=["prepare", "detect"], progress=False)
+    marker = tmp_path / "detect" / "DONE.json"
+    before = marker.read_text()
+    run_pipeline(SAMPLE, tmp_path, cfg, stages=["detect"], progress=False)
+    assert marker.read_text() == before  # skipped, as in the full run
+    changed = load_config(overrides=["prepare.calib_frames=1", "prepare.ground_frames=3"])
+    run_pipeline(SAMPLE, tmp_path, changed, stages=["detect"], progress=False)  # its input's settings changed
+    assert json.loads(marker.read_text())["fingerprint"] != json.loads(before)["fingerprint"]

@@ -12,14 +12,16 @@ settings (`run_pipeline`, as `intercap run` does), and the bench prints:
     hands, object ADD(-S), penetration, contact).
 
     python -m tools.bench_pipeline [--frames 150] [--width 640 --height 576] [--cameras 4] [--fps 30]
-                                   [--raw] [--keep DIR] [--set SECTION.KEY=VALUE ...] [--profile]
+                                   [--raw] [--keep DIR [--resume]] [--set SECTION.KEY=VALUE ...] [--profile]
     python -m tools.bench_pipeline --session data_samples/sample [--set run.device=cuda]
 
 Quick check: `--frames 30 --width 320 --height 288` (30 frames resample the script: 7x faster
 motion than capture rate, so accuracy is not comparable with the full-size figures).
 Rows for real-capture cases: `--cameras 1` (one view), `--raw` (no keypoint or mask files: the
 pipeline detects and derives them).
---keep DIR keeps (and reuses) the generated session there; the pipeline is always redone.
+--keep DIR keeps (and reuses) the generated session there; the pipeline is always redone, unless
+--resume: a killed run in DIR goes on where it stopped (stages done are skipped, the unfinished one
+resumes from its checkpoints; the timings then cover only what this run did).
 --session DIR runs on an existing session with ground truth (the committed sample, a kept one)
 instead of generating one. With `--set run.device=cuda` the peak GPU memory is printed too.
 --profile wraps the pipeline in pyinstrument (when installed) and prints its top entries
@@ -99,13 +101,15 @@ def cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
-def run(session: Path, out: Path, overrides: list[str], profile: bool) -> tuple[dict, float, float, float, str | None]:
+def run(session: Path, out: Path, overrides: list[str], profile: bool,
+        resume: bool = False) -> tuple[dict, float, float, float, str | None]:
     """(metrics.json, wall seconds, CPU seconds, peak MB, profile summary or None) of the full
-    pipeline, default stages. CPU and memory include the stages' worker processes."""
+    pipeline, default stages, redone from scratch unless `resume`. CPU and memory include the stages'
+    worker processes."""
     from intercap.config import load_config
     from intercap.pipeline import run_pipeline
 
-    cfg = load_config(overrides=["run.force=true", *overrides])
+    cfg = load_config(overrides=[f"run.force={str(not resume).lower()}", *overrides])
     profiler = None
     if profile:
         try:
@@ -153,9 +157,12 @@ def main(argv=None) -> None:
     parser.add_argument("--session", type=Path, help="run on this session (with ground_truth/) instead of generating one")
     parser.add_argument("--keep", type=Path, help="keep (and reuse) the session and the results here")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
+    parser.add_argument("--resume", action="store_true", help="with --keep: continue the killed run kept there")
     parser.add_argument("--profile", action="store_true", help="profile with pyinstrument (if installed)")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.WARNING)
+    if args.resume and args.keep is None:
+        parser.error("--resume needs --keep DIR (the folder of the run to continue)")
+    logging.basicConfig(level=logging.INFO if args.resume else logging.WARNING)  # a resume says what it skips
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
     synth = {"script": args.script, "frames": args.frames or None, "fps": args.fps, "cameras": args.cameras,
@@ -173,7 +180,7 @@ def main(argv=None) -> None:
         start = time.perf_counter()
         synth_mb = make_session(session, synth)
         synth_s = time.perf_counter() - start
-        metrics, wall, cpu, peak_mb, profile = run(session, out, args.set, args.profile)
+        metrics, wall, cpu, peak_mb, profile = run(session, out, args.set, args.profile, resume=args.resume)
         from intercap.evaluation.evaluate import evaluate
         from intercap.evaluation.table import format_table
 

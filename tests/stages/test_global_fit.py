@@ -276,3 +276,30 @@ def test_the_config_section_is_spelled_global(tmp_path):
     text = (tmp_path / "config.yaml").read_text()
     assert "\nglobal:\n" in text and "\nglobal_:" not in text
     assert load_config(tmp_path / "config.yaml").global_.steps == 3
+
+
+def test_quality_figures_over_a_long_take_match_the_whole_take_definitions():
+    """Computed FIGURE_FRAMES at a time (bounded memory on long takes), the stage's penetration and
+    jitter equal their definitions over all frames at once, gaps and contact-only frames included."""
+    import trimesh
+
+    rng = np.random.default_rng(0)
+    T, V, fps = 2 * global_fit.FIGURE_FRAMES + 37, 50, 30.0
+    shape = ObjectShape(trimesh.creation.box(extents=(0.2, 0.2, 0.2)), 16, None, samples=16)
+    vertices = (rng.normal(scale=0.1, size=(T, V, 3)) + [0, 0, 0.15]).astype(np.float32)  # some inside the box
+    R = np.stack([trimesh.transformations.rotation_matrix(a, [0, 0, 1])[:3, :3] for a in rng.uniform(0, 3, T)])
+    t = rng.normal(scale=0.02, size=(T, 3)).astype(np.float32) + [0, 0, 0.15]
+    body_valid, object_valid, contact = (rng.random(T) > p for p in (0.05, 0.05, 0.4))
+    per_frame = global_fit.PerFrameResults(body=None, body_valid=body_valid, R=R, t=t, object_valid=object_valid,
+                                           object_confidence=np.ones(T), contact=contact, hand_distance=None)
+    figures = global_fit.quality_figures(vertices, R, t, shape, per_frame, fps)
+
+    both = np.flatnonzero(body_valid & object_valid & contact)
+    local = np.einsum("tvj,tjk->tvk", vertices[both] - t[both, None], R[both]).astype(np.float32)
+    depth = np.maximum(-shape.signed_distance(torch.from_numpy(local)).numpy(), 0).max(1)
+    assert depth.max() > 0.01  # the take has penetrating frames to measure
+    assert figures["penetration_mm_mean"] == pytest.approx(1000 * depth.mean(), rel=1e-6)
+    assert figures["penetration_mm_max"] == pytest.approx(1000 * depth.max(), rel=1e-6)
+    fine = body_valid[2:] & body_valid[1:-1] & body_valid[:-2]
+    acc = np.linalg.norm(vertices[2:] - 2 * vertices[1:-1] + vertices[:-2], axis=-1) * fps**2
+    assert figures["jitter_mps2"] == pytest.approx(float(acc[fine].mean()), rel=1e-5)

@@ -1,0 +1,30 @@
+"""tools.count_ops: the operation counter behind the GPU-time estimate (BENCHMARKS.md, 2026-11-27)."""
+import torch
+
+from tools.count_ops import OperationCount
+
+
+def test_counts_kernels_apart_from_views_and_backward_apart_from_forward():
+    x = torch.randn(4, 3, requires_grad=True)
+    with OperationCount() as count:
+        y = (x * 2).view(-1)[:5].unsqueeze(0)  # one kernel (mul), three views
+        total = (y.exp() + 1).sum()  # three kernels
+    assert (count.kernels, count.backward) == (4, 0)
+    assert count.all >= 7  # the views, and any detach autograd adds to save a result
+    assert sum(count.sites.values()) == 4 and set(count.sites) == {"-"}  # issued by this test, not by intercap
+    with OperationCount() as count:
+        total.backward()
+    assert count.backward == count.kernels - 1 >= 3  # all but the seed gradient (ones_like), issued before any node
+    expected = torch.zeros(12)
+    expected[:5] = 2 * torch.exp(2 * x.detach().flatten()[:5])
+    assert torch.allclose(x.grad.flatten(), expected)  # counting leaves the results alone
+
+
+def test_kernels_count_at_the_intercap_function_issuing_them():
+    from intercap.geometry.cameras import distort
+
+    xy, coefficients = torch.rand(2, 5, 2), torch.rand(2, 8) * 0.1
+    with OperationCount() as count:
+        distort(xy, coefficients)
+    assert set(count.sites) == {"geometry.cameras:distort", "geometry.cameras:_radial_factor"}
+    assert count.sites["geometry.cameras:_radial_factor"] >= 10  # its rational polynomial, op by op

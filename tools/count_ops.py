@@ -1,0 +1,132 @@
+"""Tensor operations per frame, per stage: what a GPU run's time follows, counted on the CPU.
+
+On a GPU the fitting stages run small tensors (one body batch, one object, a few
+views), so each operation costs its launch and the Python around it, not its
+arithmetic: on one H100 the sample's object, body and global stages took 25, 27
+and 25 us per counted kernel operation, the 150-frame 640x576 bench 35-39 us
+(its image decoding and k-d trees are CPU work besides; BENCHMARKS.md,
+2026-11-27). So the count of operations per frame predicts a GPU's seconds per
+frame (25 us per kernel: a floor), and a change that cuts it can be measured
+without a GPU.
+
+Runs the pipeline in one process (`run.workers=1`, as a GPU runs it; each stage
+redone) and counts every aten operation the selected stages dispatch
+(`TorchDispatchMode`): all of them, the kernels among them (views, reshapes
+and selections launch nothing) and the kernels of the backward passes, per
+frame; then the intercap functions that issue most forward kernels (an
+operation inside a library, e.g. the body model, counts at its intercap
+caller). Counting slows the run several times: its timings mean nothing.
+
+    python -m tools.count_ops --session data_samples/sample [--stages object,body,global]
+                              [--out DIR] [--sites 15] [--set SECTION.KEY=VALUE ...]
+
+`--set body.batch_frames=32` runs the body in the GPU's batches (`body.batch_frames_gpu`).
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import logging
+import sys
+import tempfile
+from pathlib import Path
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+# aten operations that only describe a tensor's view of memory: no kernel on a GPU
+VIEW_OPS = {"view", "_unsafe_view", "reshape", "select", "slice", "unsqueeze", "squeeze", "expand", "t", "transpose",
+            "permute", "as_strided", "alias", "detach", "unbind", "split", "split_with_sizes", "chunk", "narrow",
+            "diagonal", "lift_fresh", "view_as_real", "view_as_complex", "_reshape_alias"}
+US_PER_KERNEL_H100 = 25.0  # the sample's stages on one H100 (2026-11-26): seconds per frame / kernels per frame
+
+
+class OperationCount(TorchDispatchMode):
+    """Counts the aten operations dispatched while active; kernels by the intercap function issuing them."""
+
+    def __init__(self, sites: bool = True):
+        super().__init__()
+        self.all = self.kernels = self.backward = 0
+        self.sites = collections.Counter() if sites else None
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.all += 1
+        if func.overloadpacket.__name__ not in VIEW_OPS:
+            self.kernels += 1
+            if torch._C._current_autograd_node() is not None:
+                self.backward += 1
+            elif self.sites is not None:
+                self.sites[issuing_function(sys._getframe(1))] += 1
+        return func(*args, **(kwargs or {}))
+
+
+def issuing_function(frame) -> str:
+    """module:function of the innermost intercap frame on the stack ("-" when none)."""
+    while frame is not None:
+        path = frame.f_code.co_filename.replace("\\", "/")
+        if "/intercap/" in path and "site-packages" not in path:
+            return f"{path.rsplit('/intercap/', 1)[1][:-3].replace('/', '.')}:{frame.f_code.co_name}"
+        frame = frame.f_back
+    return "-"
+
+
+def count_stages(session: Path, out: Path, stages: list[str], overrides: list[str]) -> tuple[dict, int]:
+    """Run the pipeline on `session` into `out`, counting inside `stages`: ({stage: OperationCount}, frames)."""
+    from intercap import pipeline
+    from intercap.config import load_config
+    from intercap.session import Session
+
+    counts = {}
+    originals = dict(pipeline.STAGES)
+
+    def counted(name, run):
+        def run_counting(session, cfg, out_dir, progress):
+            counts[name] = OperationCount()
+            with counts[name]:
+                return run(session, cfg, out_dir, progress)
+        return run_counting
+
+    try:
+        for name in stages:
+            stage = originals[name]
+            pipeline.STAGES[name] = pipeline.Stage(name, counted(name, stage.run), stage.config_sections)
+        cfg = load_config(overrides=["run.force=true", "run.workers=1", "report.enabled=false", *overrides])
+        pipeline.run_pipeline(session, out, cfg, progress=False)
+    finally:
+        pipeline.STAGES.update(originals)
+    return counts, Session.load(session).num_frames
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--session", type=Path, required=True)
+    parser.add_argument("--stages", default="object,body,global", help="the stages to count (all stages run)")
+    parser.add_argument("--out", type=Path, help="results folder (default: a temporary one)")
+    parser.add_argument("--sites", type=int, default=15, help="issuing functions listed per stage")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    from intercap.pipeline import STAGES
+
+    stages = [s.strip() for s in args.stages.split(",") if s.strip()]
+    unknown = [s for s in stages if s not in STAGES]
+    if unknown:
+        parser.error(f"unknown stage(s) {', '.join(unknown)}; available: {', '.join(STAGES)}")
+    with tempfile.TemporaryDirectory(prefix="count_ops_") as scratch:
+        counts, T = count_stages(args.session, args.out or Path(scratch), stages, args.set)
+
+    print(f"\noperations per frame on {args.session} ({T} frames; {' '.join(args.set) or 'default settings'})")
+    print(f"{'stage':8s} {'all':>9s} {'kernels':>9s} {'backward':>9s} {'H100 s/frame >= (25 us each)':>29s}")
+    for name, c in counts.items():
+        print(f"{name:8s} {c.all / T:9.0f} {c.kernels / T:9.0f} {c.backward / T:9.0f} "
+              f"{c.kernels / T * US_PER_KERNEL_H100 * 1e-6:29.3f}")
+    total = sum(c.kernels for c in counts.values()) / T
+    print(f"{'total':8s} {'':9s} {total:9.0f} {'':9s} {total * US_PER_KERNEL_H100 * 1e-6:29.3f}")
+    for name, c in counts.items():
+        print(f"\n{name}: forward kernels per frame by issuing function")
+        for site, n in c.sites.most_common(args.sites):
+            print(f"  {n / T:8.0f}  {site}")
+
+
+if __name__ == "__main__":
+    main()

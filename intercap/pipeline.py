@@ -131,7 +131,8 @@ def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: 
     and OUT/metrics.json after each."""
     metrics_path = out_dir / "metrics.json"
     upstream: list[str] = []
-    for name in available_stages()[:available_stages().index(names[-1]) + 1]:
+    order = available_stages()
+    for name in order[:order.index(names[-1]) + 1]:
         stage = STAGES[name]
         fingerprint = stage_fingerprint(stage, cfg, session.root, upstream)
         upstream.append(fingerprint)  # also of stages not run now: `--stages global` finds the full run's work

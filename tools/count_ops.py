@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import logging
 import sys
 import tempfile
@@ -44,10 +45,10 @@ US_PER_KERNEL_H100 = 25.0  # the sample's stages on one H100 (2026-11-26): secon
 class OperationCount(TorchDispatchMode):
     """Counts the aten operations dispatched while active; kernels by the intercap function issuing them."""
 
-    def __init__(self, sites: bool = True):
+    def __init__(self):
         super().__init__()
         self.all = self.kernels = self.backward = 0
-        self.sites = collections.Counter() if sites else None
+        self.sites = collections.Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.all += 1
@@ -55,7 +56,7 @@ class OperationCount(TorchDispatchMode):
             self.kernels += 1
             if torch._C._current_autograd_node() is not None:
                 self.backward += 1
-            elif self.sites is not None:
+            else:
                 self.sites[issuing_function(sys._getframe(1))] += 1
         return func(*args, **(kwargs or {}))
 
@@ -88,8 +89,7 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
 
     try:
         for name in stages:
-            stage = originals[name]
-            pipeline.STAGES[name] = pipeline.Stage(name, counted(name, stage.run), stage.config_sections)
+            pipeline.STAGES[name] = dataclasses.replace(originals[name], run=counted(name, originals[name].run))
         cfg = load_config(overrides=["run.force=true", "run.workers=1", "report.enabled=false", *overrides])
         pipeline.run_pipeline(session, out, cfg, progress=False)
     finally:

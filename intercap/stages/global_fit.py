@@ -702,6 +702,11 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
 FIGURE_FRAMES = 256  # frames per step of `quality_figures`: a long take's (T, V, 3) temporaries stay bounded
 
 
+def in_parts(frames: np.ndarray) -> list[np.ndarray]:
+    """Frame indices (n,) -> consecutive parts of at most FIGURE_FRAMES."""
+    return np.array_split(frames, -(-len(frames) // FIGURE_FRAMES))
+
+
 def quality_figures(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, shape: ObjectShape,
                     per_frame: PerFrameResults, fps: float) -> dict:
     """The stage's own checks (no ground truth): penetration on contact frames, jitter. Computed
@@ -711,7 +716,7 @@ def quality_figures(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, shape: O
     figures = {"contact_frames": int(per_frame.contact.sum())}
     if both.any():
         depth = []  # (n,) deepest body vertex inside the object per frame, FIGURE_FRAMES frames at a time
-        for part in np.array_split(np.flatnonzero(both), -(-int(both.sum()) // FIGURE_FRAMES)):
+        for part in in_parts(np.flatnonzero(both)):
             local = np.einsum("tvj,tjk->tvk", vertices[part] - t[part, None], R[part]).astype(np.float32)
             depth.append(np.maximum(-shape.signed_distance(torch.from_numpy(local)).numpy(), 0).max(1))
         depth = np.concatenate(depth)
@@ -719,7 +724,7 @@ def quality_figures(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, shape: O
     fine = np.flatnonzero(per_frame.body_valid[2:] & per_frame.body_valid[1:-1] & per_frame.body_valid[:-2])
     if len(fine):  # frame fine[i] + 1 and both its neighbours fitted
         total = 0.0
-        for part in np.array_split(fine, -(-len(fine) // FIGURE_FRAMES)):
+        for part in in_parts(fine):
             acc = np.linalg.norm(vertices[part + 2] - 2 * vertices[part + 1] + vertices[part], axis=-1)
             total += float(acc.sum(dtype=np.float64))
         figures["jitter_mps2"] = total / (len(fine) * vertices.shape[1]) * fps**2

@@ -112,6 +112,9 @@ class BodyConfig:
     # on CUDA kernel launches, not arithmetic, bound an L-BFGS step, so a larger batch costs about the same per step
     # (H200, the sample: 2.14 -> 1.17 s/frame at 30 frames, surface 6.0 -> 6.4 mm)
     batch_frames_gpu: int = 32
+    side_by_side: int = 1  # chunks of the take one process fits at once, their batches in one evaluation (`fit_chunks`)
+    side_by_side_gpu: int = 8  # on CUDA: a GPU's step costs its kernel launches, so K chunks cost about what one does
+    # (150 frames, 3 chunks of 32-frame batches: 2.4x fewer kernels per frame, surface 5.8 -> 5.6 mm; BENCHMARKS.md)
     min_keypoint_confidence: float = 0.2  # detections below this are ignored
     keypoint_view_check_px: float = 30.0  # a detection this far (at 640 px width) from the other views' point is dropped; 0: off
     min_body_keypoints: int = 6  # a view counts for a frame when it has this many confident body keypoints
@@ -138,10 +141,11 @@ class BodyConfig:
     w_shape: float = 100.0
     shared_shape: bool = True  # one phenotype per batch whose frames all have >= 2 keypoint views (one person; 10-20 %
     # faster); with fewer views each frame its own: one view's stooping frames would bend the upright ones' shape
-    shape_batches: int = 2  # the phenotype is fitted on each chunk's first batches this many, then held at their
-    # mean (one person): re-fitted on every batch it drifted from batch to batch (its prior is weak), so the global
-    # stage's sequence mean fitted no batch's poses (150 frames in one chunk of 32-frame batches: surface 22 -> 6.2 mm;
-    # 1 batch: 6.0 mm there but penetration +18 % on the held-out session; BENCHMARKS.md); 0: every batch
+    shape_batches: int = 2  # the phenotype is fitted on the first batches this many (a process's chunks together),
+    # then held at their mean (one person): re-fitted on every batch it drifted from batch to batch (its prior is
+    # weak), so the global stage's sequence mean fitted no batch's poses (150 frames in one chunk of 32-frame batches:
+    # surface 22 -> 6.2 mm; 1 batch: 6.0 mm there but penetration +18 % on the held-out session; BENCHMARKS.md);
+    # 0: every batch
     size_from_depth: bool = True  # template's stature from the 3D torso keypoints (children, tall people; one view)
     w_expression: float = 10.0
     w_penetration: float = 1.0e5
@@ -153,6 +157,8 @@ class BodyConfig:
     full_steps: int = 20  # + hands, with the depth term and self-penetration (10: stoops stay 2x off, BENCHMARKS.md)
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
+    per_frame_lbfgs: bool = True  # each frame its own L-BFGS (`minimise_per_frame`) where the frames do not interact;
+    # false: one L-BFGS over the batch's summed energy (150 frames, 32-frame batches: surface 6.2 against 5.8 mm)
     # tracking: a frame whose person points lie far from its fit (median distance, mm), or, seen with
     # keypoints by fewer than two views, whose pose the learned prior finds far less likely than recent
     # frames' (contorted to reach the evidence), is refitted from the evidence (the upright template at

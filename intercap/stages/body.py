@@ -12,9 +12,12 @@ For every frame the body model (anny by default) is fitted to
     approximated by spheres along the limbs and trunk (see `BodySpheres`).
 As SMPLify-X, in phases (`PHASES`): orientation and translation from the torso
 keypoints, then pose and shape from all keypoints, then everything with the
-depth term. Frames are fitted in batches (one L-BFGS over the batch; the frames
-do not interact), initialised per frame by aligning the previous batch's pose
-to the triangulated torso keypoints; the phenotype is fitted on the first
+depth term. Frames are fitted in batches (the frames do not interact: each has
+its own L-BFGS, batched as tensors, `minimise_per_frame`), initialised per frame
+by aligning the previous batch's pose to the triangulated torso keypoints; a
+process may fit several chunks of the take side by side, their batches in one
+evaluation (`fit_chunks`: on a GPU that divides the kernel launches per frame by
+their number); the phenotype is fitted on the first
 `shape_batches` batches and held at their mean after (one person: re-fitted per
 batch it drifted). A frame with too little evidence (see
 `usable_frames`) is marked invalid and written as NaN, never invented.
@@ -42,7 +45,7 @@ from intercap.body_models import BodyParams, shared_model
 from intercap.body_models.base import axis_angle_to_matrix, matrix_to_axis_angle
 from intercap.body_models.keypoints import BODY_25, BODY_25_EDGES, NUM_BODY, NUM_BODY_HANDS
 from intercap.energies import losses, priors
-from intercap.energies.optim import minimise
+from intercap.energies.optim import minimise, minimise_per_frame
 from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
 from intercap.geometry.ground import up_hint_from_cameras
 from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
@@ -79,6 +82,12 @@ class BodyObservations:
     @property
     def batch_size(self) -> int:
         return int(self.keypoints.shape[0])
+
+    @staticmethod
+    def cat(items: list["BodyObservations"]) -> "BodyObservations":
+        """The frames of all `items`, in order."""
+        return BodyObservations(np.concatenate([o.frame_ids for o in items]), torch.cat([o.keypoints for o in items]),
+                                torch.cat([o.points for o in items]), torch.cat([o.point_valid for o in items]))
 
     def select(self, index) -> "BodyObservations":
         """The observations of frames `index` (an index array; repeats allowed)."""
@@ -740,7 +749,7 @@ class BodyFitter:
                     body_pose = body_pose.index_copy(1, free, leaves["body_pose"])
                 return BodyParams(body_pose=body_pose, **values)
 
-            def energy() -> torch.Tensor:
+            def frame_energies() -> torch.Tensor:
                 now = current()
                 rest = state["rest"]
                 if rest is None and "expression" not in leaves and groups < B:  # one rest state per group
@@ -751,7 +760,7 @@ class BodyFitter:
                                                                          posed.keypoints, now)
                 terms = self.energy_terms(now, obs, phase.terms, state["matches"],
                                           getattr(self.cfg, phase.rho_key), out=out, rest=rest)
-                return sum(self.weight(k) * v.sum() for k, v in terms.items())
+                return sum(self.weight(k) * v for k, v in terms.items())
 
             def refresh(step, value):
                 if "depth" in phase.terms:
@@ -761,8 +770,12 @@ class BodyFitter:
 
             if "depth" in phase.terms:
                 state["matches"] = self.correspondences(current(), obs)
-            result = minimise(list(leaves.values()), energy, max_steps=getattr(self.cfg, phase.steps_key),
-                              inner_iterations=self.cfg.inner_iterations, ftol=self.cfg.ftol, monitor=refresh)
+            budget = dict(max_steps=getattr(self.cfg, phase.steps_key), inner_iterations=self.cfg.inner_iterations,
+                          ftol=self.cfg.ftol, monitor=refresh)
+            if self.cfg.per_frame_lbfgs and ("shape" not in leaves or groups == B):  # the frames do not interact
+                result = minimise_per_frame(list(leaves.values()), frame_energies, **budget)
+            else:  # frames sharing a phenotype: one problem
+                result = minimise(list(leaves.values()), lambda: frame_energies().sum(), **budget)
             params = current().detach()
             stats[phase.name] = {"energy": result.energy, "steps": result.steps,
                                  "evaluations": result.evaluations, "stopped": result.stopped}
@@ -985,17 +998,33 @@ def batch_frames(cfg) -> int:
     return cfg.body.batch_frames_gpu if on_gpu(cfg) else cfg.body.batch_frames
 
 
+def side_by_side(cfg) -> int:
+    """Chunks one process fits side by side: `body.side_by_side`, or `body.side_by_side_gpu` on CUDA."""
+    return max(1, cfg.body.side_by_side_gpu if on_gpu(cfg) else cfg.body.side_by_side)
+
+
+def chunk_groups(T: int, cfg) -> list[tuple[Chunk, ...]]:
+    """The take's chunks (`run.workers` x `side_by_side`), dealt to the processes: each process fits a
+    run of consecutive chunks side by side."""
+    workers = worker_count(cfg)
+    chunks = frame_chunks(T, workers * side_by_side(cfg), cfg.run.min_frames_per_worker, batch_frames(cfg))
+    n = min(workers, len(chunks))
+    bounds = [round(k * len(chunks) / n) for k in range(n + 1)]
+    return [tuple(chunks[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     """The `body` stage: writes OUT/body_params.npz, body_vertices.npy, body_faces.npy, keypoints3d.npy.
 
-    The take is fitted in chunks of frames by `run.workers` processes (`intercap.parallel`);
-    each chunk keeps its own resumable checkpoint."""
+    The take is fitted in chunks of frames by `run.workers` processes (`intercap.parallel`), each
+    fitting `side_by_side` chunks at once (`fit_chunks`); each chunk keeps its own resumable checkpoint."""
     out_dir = Path(out_dir)
     (out_dir / "body").mkdir(parents=True, exist_ok=True)
     T = session.num_frames
-    chunks = frame_chunks(T, worker_count(cfg), cfg.run.min_frames_per_worker, batch_frames(cfg))
-    where = session if len(chunks) == 1 else session.root  # workers load the session themselves
-    parts = run_chunks(fit_chunk, chunks, (where, cfg, out_dir), T, "body", progress)
+    groups = chunk_groups(T, cfg)
+    where = session if len(groups) == 1 else session.root  # workers load the session themselves
+    parts = [part for group in run_chunks(fit_chunks, groups, (where, cfg, out_dir), T, "body", progress)
+             for part in group]
     model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
     fitted = BodyParams.from_numpy_dict(
         {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]}, dtype=model.dtype,
@@ -1010,33 +1039,103 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                             fit_to_data_mm=gap.astype(np.float32), reinitialised=reinitialised)
     # detections dropped for disagreeing with the other views (this run's batches; `reject_disagreeing_views`)
     rejected = sum(int(p.get("keypoints_rejected", 0)) for p in parts)
-    return {**figures, "keypoints_rejected_by_views": rejected, "workers": len(chunks)}
+    return {**figures, "keypoints_rejected_by_views": rejected, "workers": len(groups),
+            "chunks": len(parts)}
 
 
-def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
+@dataclass
+class ChunkWorkshop:
+    """What the chunks one process fits share: the session, the model, the cameras, the evidence
+    readers, one fitter, and the phenotype estimates of every chunk (one person, one shape)."""
+
+    session: object
+    cfg: object
+    out_dir: Path
+    model: object
+    cameras: Cameras
+    keypoint_source: KeypointSource
+    person: PersonPoints
+    fitter: BodyFitter
+    shape_estimates: list  # one {first row of a batch: phenotype} per chunk
+
+    @classmethod
+    def open(cls, session, cfg, out_dir: Path) -> "ChunkWorkshop":
+        from intercap.session import Session
+
+        if not hasattr(session, "frame_ids"):
+            session = Session.load(session)
+        bcfg = cfg.body
+        torch.manual_seed(bcfg.seed)
+        out_dir = Path(out_dir)
+        model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
+        cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
+        keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
+                                         bcfg.keypoint_view_check_px)
+        person = PersonPoints(session, cameras, bcfg, out_dir)
+        fitter = BodyFitter(model, cameras, bcfg)
+        if (out_dir / "prepare" / "ground.json").exists():  # one view hides the legs: they must not sink through it
+            from intercap.stages.prepare import load_ground
+
+            ground = load_ground(out_dir)
+            fitter.ground = tuple(torch.as_tensor(x, dtype=torch.float32, device=cameras.K.device)
+                                  for x in (ground.point, ground.normal))
+        return cls(session, cfg, out_dir, model, cameras, keypoint_source, person, fitter, [])
+
+    def hold_shape(self) -> bool:
+        """Hold the fitter's phenotype once all chunks together have `shape_batches` estimates."""
+        return hold_shape(self.fitter, [v for chunk in self.shape_estimates for v in chunk.values()],
+                          self.cfg.body.shape_batches)
+
+
+def fit_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) -> list[dict]:
+    """Fit `chunks` side by side: each round, the next batch of every unfinished chunk goes into one
+    L-BFGS (the frames do not interact; each chunk keeps its phenotype until it is held). On a GPU a
+    step's cost is its kernel launches, not their size, so K chunks side by side cost about what one
+    does; on the CPU it saves the per-operation overhead. Returns `chunk_batches`' result per chunk."""
+    workshop = ChunkWorkshop.open(session, cfg, out_dir)
+    runs = [chunk_batches(workshop, chunk, queue) for chunk in chunks]
+    results, requests = [None] * len(runs), {}
+
+    def advance(k: int, reply) -> None:
+        try:
+            requests[k] = runs[k].send(reply)
+        except StopIteration as finished:
+            requests.pop(k, None)
+            results[k] = finished.value
+
+    for k in range(len(runs)):
+        advance(k, None)
+    while requests:
+        order = sorted(requests)
+        batches = [requests[k] for k in order]
+        obs = BodyObservations.cat([sub for sub, _ in batches])
+        groups, first = [], 0  # each chunk its phenotype, as if fitted alone
+        for sub, _ in batches:
+            shared = shares_shape(sub, workshop.fitter.cfg)
+            groups.append(torch.full((sub.batch_size,), first) if shared else first + torch.arange(sub.batch_size))
+            first = int(groups[-1].max()) + 1
+        start = time.perf_counter()
+        params, stats = workshop.fitter.fit(obs, BodyParams.cat([init for _, init in batches]),
+                                            shape_groups=torch.cat(groups).to(obs.keypoints.device))
+        seconds = (time.perf_counter() - start) / obs.batch_size
+        row = 0
+        for k, (sub, _) in zip(order, batches):
+            rows = slice(row, row + sub.batch_size)
+            row = rows.stop
+            advance(k, (params[rows], {"terms": {name: v[rows] for name, v in stats["terms"].items()}},
+                        seconds * sub.batch_size))
+    return results
+
+
+def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
     """Fit frames [chunk.lo, chunk.hi) in batches, each warm-started from the previous batch's
-    last fit; checkpointed after every batch (OUT/body/progress_LO_HI.npz). Returns the rows'
-    parameters (numpy), `valid`, `reprojection_px` and `seconds`. `queue.put(n)` per n frames done."""
-    from intercap.session import Session
-
-    if not hasattr(session, "frame_ids"):
-        session = Session.load(session)
-    bcfg = cfg.body
-    torch.manual_seed(bcfg.seed)
-    out_dir = Path(out_dir)
-    model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model), device=cfg.run.device)
-    cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
-    keypoint_source = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
-                                     bcfg.keypoint_view_check_px)
-    person = PersonPoints(session, cameras, bcfg, out_dir)
-    fitter = BodyFitter(model, cameras, bcfg)
-    if (out_dir / "prepare" / "ground.json").exists():  # one view hides the legs: they must not sink through it
-        from intercap.stages.prepare import load_ground
-
-        ground = load_ground(out_dir)
-        fitter.ground = tuple(torch.as_tensor(x, dtype=torch.float32, device=cameras.K.device)
-                              for x in (ground.point, ground.normal))
-
+    last fit; checkpointed after every batch (OUT/body/progress_LO_HI.npz). A generator: it yields
+    each batch's (observations, initial parameters) and is sent back (parameters, statistics, seconds
+    of the fit) (`fit_chunks`). Returns the rows' parameters (numpy), `valid`, `reprojection_px` and
+    `seconds`. `queue.put(n)` per n frames done."""
+    session, bcfg, out_dir = workshop.session, workshop.cfg.body, workshop.out_dir
+    model, cameras, fitter = workshop.model, workshop.cameras, workshop.fitter
+    keypoint_source, person = workshop.keypoint_source, workshop.person
     T = chunk.hi - chunk.lo
     frame_ids = session.frame_ids[chunk.lo:chunk.hi]
     checkpoint = out_dir / "body" / f"progress_{chunk.lo:06d}_{chunk.hi:06d}.npz"
@@ -1048,8 +1147,10 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
     gap = np.full(T, np.nan)  # fit-to-data, mm
     prior = np.full(T, np.nan)  # the learned pose prior's energy of each frame's fit
     reinitialised = np.zeros(T, bool)
+    rejected = 0  # keypoints dropped by the view check in this run's batches
     sized = None  # the template's phenotype from the person's measured size (NaN: the template's own kept)
     shape_estimates = {}  # first row of a batch -> the phenotype fitted on it; `shape_batches` of them, then held
+    workshop.shape_estimates.append(shape_estimates)
     if checkpoint.exists():
         saved = np.load(checkpoint)
         fitted = BodyParams.from_numpy_dict(saved, dtype=model.dtype, device=model.faces.device)
@@ -1059,9 +1160,9 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         if "sized_shape" in saved:
             sized = saved["sized_shape"]
         if "shape_estimates" in saved:  # those of batches still done (a resumed batch estimates again)
-            shape_estimates = {int(row): value for row, value in zip(saved["shape_estimate_rows"], saved["shape_estimates"])
-                               if done[row]}
-            hold_shape(fitter, list(shape_estimates.values()), bcfg.shape_batches)
+            shape_estimates.update({int(row): value for row, value in
+                                    zip(saved["shape_estimate_rows"], saved["shape_estimates"]) if done[row]})
+            workshop.hold_shape()
         log.info("body: resuming frames %d-%d, %d of %d already fitted", chunk.lo, chunk.hi - 1, int(done.sum()), T)
         queue.put(int(done.sum()))
 
@@ -1070,7 +1171,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
         upright.shape[:] = torch.as_tensor(sized, dtype=upright.shape.dtype, device=upright.shape.device)
         fitter.shape_center = upright.shape[0].clone()
     template = upright  # the next batch starts from the last fit
-    size = batch_frames(cfg)
+    size = batch_frames(workshop.cfg)
     batches = [np.arange(s, min(s + size, T)) for s in range(0, T, size)]
     for batch in batches:
         if done[batch].all():
@@ -1079,11 +1180,14 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
             continue
         start = time.perf_counter()
         ids = frame_ids[batch]
+        before = keypoint_source.rejected  # the reader is the process's: its count, this chunk's part of it
         kps = keypoint_source.batch(ids, bcfg.min_keypoint_confidence)
+        rejected += keypoint_source.rejected - before
         points, point_valid = person.batch(ids, kps)
         device = cameras.K.device
         obs = BodyObservations(ids, torch.from_numpy(kps).to(device), points.to(device), point_valid.to(device))
         usable = usable_frames(obs.keypoints, obs.point_valid, bcfg).cpu().numpy()
+        fit_seconds = 0.0
         if usable.any():
             keep = np.flatnonzero(usable)
             sub = obs.select(keep)
@@ -1095,7 +1199,9 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
                     log.info("body: measured size %.2f x the template's: starting from a stature of %.2f m",
                              scale, float(stature(model, upright.shape)))
             init = fitter.initialise(sub, template)
-            params, stats = fitter.fit(sub, init)
+            waited = time.perf_counter()
+            params, stats, fit_seconds = yield sub, init  # fitted with the other chunks' batches (`fit_chunks`)
+            start += time.perf_counter() - waited
             with torch.no_grad():
                 sub_gap = fit_to_data_mm(model(params).vertices, sub)
             recent = slice(max(0, batch[0] - bcfg.track_window), batch[0])
@@ -1125,11 +1231,11 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
                 template = params[int(on_points[-1])]
                 if fitter.held_shape is None and bcfg.shape_batches > 0:
                     shape_estimates[int(batch[0])] = params.shape[on_points].mean(0).cpu().numpy()
-                    if hold_shape(fitter, list(shape_estimates.values()), bcfg.shape_batches):
+                    if workshop.hold_shape():
                         log.info("body: phenotype held from frame %d on (mean of %d batches' fits)",
-                                 int(ids[keep][-1]) + 1, len(shape_estimates))
+                                 int(ids[keep][-1]) + 1, sum(map(len, workshop.shape_estimates)))
         done[batch] = True
-        seconds[batch] = (time.perf_counter() - start) / len(batch)
+        seconds[batch] = (time.perf_counter() - start + fit_seconds) / len(batch)
         queue.put(len(batch))
         save_npz(checkpoint, **fitted.to_numpy_dict(), done=done, valid=valid, reprojection_px=reproj, seconds=seconds,
                  fit_to_data_mm=gap, pose_prior=prior, reinitialised=reinitialised,
@@ -1137,7 +1243,7 @@ def fit_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict:
                  shape_estimate_rows=np.array(list(shape_estimates), np.int64),
                  **({} if sized is None else {"sized_shape": sized}))
     return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds,
-            "fit_to_data_mm": gap, "reinitialised": reinitialised, "keypoints_rejected": keypoint_source.rejected}
+            "fit_to_data_mm": gap, "reinitialised": reinitialised, "keypoints_rejected": rejected}
 
 
 def hold_shape(fitter: BodyFitter, estimates: list, batches: int) -> bool:

@@ -20,8 +20,8 @@ caller). Counting slows the run several times: its timings mean nothing.
     python -m tools.count_ops --session data_samples/sample [--stages object,body,global]
                               [--out DIR] [--sites 15] [--set SECTION.KEY=VALUE ...]
 
-`--set body.batch_frames=32 --set body.side_by_side=8` runs the body with the GPU's settings
-(`body.batch_frames_gpu`, `body.side_by_side_gpu`).
+`--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=144` runs the
+GPU's settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`, `global.window_frames_gpu`).
 """
 from __future__ import annotations
 

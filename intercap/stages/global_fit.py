@@ -48,7 +48,7 @@ from intercap.energies.motion_prior import MODEL_FPS
 from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras
 from intercap.io.files import per_frame_result, publish, save_npz, write_json
-from intercap.parallel import Chunk, frame_chunks, run_chunks, shutdown, worker_count
+from intercap.parallel import Chunk, frame_chunks, on_gpu, run_chunks, shutdown, worker_count
 from intercap.stages.body import (
     PHASES,
     BodyFitter,
@@ -568,6 +568,11 @@ class GlobalProblem:
         self.observations = Observations(session, cfg, out_dir, self.cameras)
 
 
+def window_frames(cfg) -> int:
+    """Frames per window: `global.window_frames`, or `global.window_frames_gpu` on CUDA."""
+    return cfg.global_.window_frames_gpu if on_gpu(cfg) else cfg.global_.window_frames
+
+
 def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk: Chunk, queue) -> dict:
     """Fit frames [chunk.lo_context, chunk.hi_context) in overlapping windows, checkpointed after
     every window (OUT/global/progress_LO_HI.npz); returns rows [chunk.lo, chunk.hi) of the body
@@ -582,7 +587,7 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
     per_frame, shape = problem.per_frame, problem.shape
     lo, hi = chunk.lo_context, chunk.hi_context
     plan = [(a + lo, b + lo, fixed, commit + lo) for a, b, fixed, commit in
-            windows(hi - lo, g.window_frames, g.window_overlap, g.window_history)]
+            windows(hi - lo, window_frames(cfg), g.window_overlap, g.window_history)]
     fitted = per_frame.body.clone()
     device = problem.model.faces.device  # the windows are fitted there
     R_all = torch.as_tensor(per_frame.R, dtype=torch.float32, device=device)

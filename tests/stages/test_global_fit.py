@@ -303,3 +303,13 @@ def test_quality_figures_over_a_long_take_match_the_whole_take_definitions():
     fine = body_valid[2:] & body_valid[1:-1] & body_valid[:-2]
     acc = np.linalg.norm(vertices[2:] - 2 * vertices[1:-1] + vertices[:-2], axis=-1) * fps**2
     assert figures["jitter_mps2"] == pytest.approx(float(acc[fine].mean()), rel=1e-5)
+
+
+def test_a_gpu_fits_longer_windows_than_the_cpu():
+    """On CUDA a window's step costs its kernel launches whatever its length, so the global stage takes
+    global.window_frames_gpu frames per window there, global.window_frames on the CPU."""
+    from intercap.stages.global_fit import window_frames
+
+    cpu = load_config(overrides=["global.window_frames=40", "global.window_frames_gpu=120"])
+    gpu = load_config(overrides=["run.device=cuda:0", "global.window_frames=40", "global.window_frames_gpu=120"])
+    assert (window_frames(cpu), window_frames(gpu)) == (40, 120)

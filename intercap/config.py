@@ -112,7 +112,8 @@ class BodyConfig:
     # on CUDA kernel launches, not arithmetic, bound an L-BFGS step, so a larger batch costs about the same per step
     # (H200, the sample: 2.14 -> 1.17 s/frame at 30 frames, surface 6.0 -> 6.4 mm)
     batch_frames_gpu: int = 32
-    side_by_side: int = 1  # chunks of the take one process fits at once, their batches in one evaluation (`fit_chunks`)
+    side_by_side: int = 1  # chunks of the take one process fits at once, their batches in one evaluation (`fit_chunks`;
+    # 2 on a 600-frame take: body 10 % faster, same accuracy; a short take pays a cold start per extra chunk)
     side_by_side_gpu: int = 8  # on CUDA: a GPU's step costs its kernel launches, so K chunks cost about what one does
     # (150 frames, 3 chunks of 32-frame batches: 2.4x fewer kernels per frame, surface 5.8 -> 5.6 mm; BENCHMARKS.md)
     min_keypoint_confidence: float = 0.2  # detections below this are ignored

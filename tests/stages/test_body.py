@@ -369,6 +369,35 @@ def test_chunks_fitted_by_workers_or_side_by_side_fit_the_take_as_one_chunk_does
     assert errors["cut"] < 30 and abs(errors["cut"] - errors["one"]) < 3, errors
 
 
+def test_chunks_side_by_side_resume_where_each_stopped(tmp_path, monkeypatch):
+    """Two chunks fitted side by side, killed after their first batches: the rerun fits only the rest
+    (each chunk from its own checkpoint, the phenotype held from the saved estimates) and gives the
+    uninterrupted run's result."""
+    session = trimmed_copy(SAMPLE_SESSION, tmp_path / "session", 8)
+    out = tmp_path / "out"
+    cfg = load_config(overrides=["run.workers=1", "body.side_by_side=2", "run.min_frames_per_worker=4",
+                                 "body.batch_frames=2", "report.enabled=false"])
+    assert run_pipeline(session, out, cfg, stages=["body"], progress=False)["body"]["chunks"] == 2
+    keypoints = np.load(out / "keypoints3d.npy")
+    for checkpoint in sorted((out / "body").glob("progress_*.npz")):
+        progress = dict(np.load(checkpoint))
+        assert len(progress["shape_estimates"]) == 1  # one batch each: the phenotype held after the first round
+        progress["done"][2:] = False
+        np.savez(checkpoint, **progress)
+    (out / "body" / "DONE.json").unlink()
+    fitted = []
+    original = body.BodyFitter.fit
+
+    def counting_fit(self, obs, init, *args, **kwargs):
+        fitted.append(obs.batch_size)
+        return original(self, obs, init, *args, **kwargs)
+
+    monkeypatch.setattr(body.BodyFitter, "fit", counting_fit)
+    run_pipeline(session, out, cfg, stages=["body"], progress=False)
+    assert fitted == [4]  # the second batch of both chunks, in one fit
+    assert np.allclose(np.load(out / "keypoints3d.npy"), keypoints, atol=1e-4)
+
+
 def test_a_frame_is_fitted_the_same_alone_and_in_a_batch(model, sample):
     """Each frame has its own L-BFGS (`minimise_per_frame`) once the phenotype is held, so its fit does
     not depend on the frames fitted beside it, up to float rounding that the non-convex fit amplifies

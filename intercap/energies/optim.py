@@ -104,12 +104,16 @@ def minimise_per_frame(
     x = torch.cat([v.detach().reshape(B, -1) for v in variables], 1)
     evaluations = 0
 
-    def evaluate(point: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        nonlocal evaluations
-        evaluations += 1
+    def place(point: torch.Tensor) -> None:
+        """The variables take the values of `point` (B, n)."""
         with torch.no_grad():
             for v, part in zip(variables, point.split(sizes, 1)):
                 v.copy_(part.view_as(v))
+
+    def evaluate(point: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        nonlocal evaluations
+        evaluations += 1
+        place(point)
         with torch.enable_grad():
             f = energy_fn()
             grads = torch.autograd.grad(f.sum(), variables, allow_unused=True)
@@ -186,8 +190,7 @@ def minimise_per_frame(
                 break
         if monitor is not None:
             monitor(step, float(f.sum()))
+    place(x)
     with torch.no_grad():
-        for v, part in zip(variables, x.split(sizes, 1)):
-            v.copy_(part.view_as(v))
         final = float(energy_fn().sum())
     return MinimiseResult(final, step, evaluations, stopped)

@@ -774,7 +774,7 @@ class BodyFitter:
                           ftol=self.cfg.ftol, monitor=refresh)
             if self.cfg.per_frame_lbfgs and ("shape" not in leaves or groups == B):  # the frames do not interact
                 result = minimise_per_frame(list(leaves.values()), frame_energies, **budget)
-            else:  # frames sharing a phenotype: one problem
+            else:  # frames sharing a phenotype (or `per_frame_lbfgs` off): one problem
                 result = minimise(list(leaves.values()), lambda: frame_energies().sum(), **budget)
             params = current().detach()
             stats[phase.name] = {"energy": result.energy, "steps": result.steps,
@@ -1082,16 +1082,24 @@ class ChunkWorkshop:
         return cls(session, cfg, out_dir, model, cameras, keypoint_source, person, fitter, [])
 
     def hold_shape(self) -> bool:
-        """Hold the fitter's phenotype once all chunks together have `shape_batches` estimates."""
-        return hold_shape(self.fitter, [v for chunk in self.shape_estimates for v in chunk.values()],
-                          self.cfg.body.shape_batches)
+        """Hold the fitter's phenotype at the mean of all chunks' estimates once there are
+        `shape_batches` of them (one person, one shape: later batches fit pose only). True when it
+        holds it now."""
+        estimates = [v for chunk in self.shape_estimates for v in chunk.values()]
+        batches, fitter = self.cfg.body.shape_batches, self.fitter
+        if batches <= 0 or len(estimates) < batches or fitter.held_shape is not None:
+            return False
+        fitter.held_shape = torch.as_tensor(np.mean(estimates, 0), dtype=fitter.model.dtype,
+                                            device=fitter.cameras.K.device)
+        return True
 
 
 def fit_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) -> list[dict]:
     """Fit `chunks` side by side: each round, the next batch of every unfinished chunk goes into one
-    L-BFGS (the frames do not interact; each chunk keeps its phenotype until it is held). On a GPU a
-    step's cost is its kernel launches, not their size, so K chunks side by side cost about what one
-    does; on the CPU it saves the per-operation overhead. Returns `chunk_batches`' result per chunk."""
+    fit, one evaluation for all (the frames do not interact; each chunk keeps its phenotype until it
+    is held). On a GPU a step's cost is its kernel launches, not their size, so K chunks side by side
+    cost about what one does; on the CPU it saves the per-operation overhead. Returns
+    `chunk_batches`' result per chunk."""
     workshop = ChunkWorkshop.open(session, cfg, out_dir)
     runs = [chunk_batches(workshop, chunk, queue) for chunk in chunks]
     results, requests = [None] * len(runs), {}
@@ -1111,9 +1119,9 @@ def fit_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) ->
         obs = BodyObservations.cat([sub for sub, _ in batches])
         groups, first = [], 0  # each chunk its phenotype, as if fitted alone
         for sub, _ in batches:
-            shared = shares_shape(sub, workshop.fitter.cfg)
-            groups.append(torch.full((sub.batch_size,), first) if shared else first + torch.arange(sub.batch_size))
-            first = int(groups[-1].max()) + 1
+            count = 1 if shares_shape(sub, workshop.fitter.cfg) else sub.batch_size
+            groups.append(torch.full((sub.batch_size,), first) if count == 1 else first + torch.arange(count))
+            first += count
         start = time.perf_counter()
         params, stats = workshop.fitter.fit(obs, BodyParams.cat([init for _, init in batches]),
                                             shape_groups=torch.cat(groups).to(obs.keypoints.device))
@@ -1244,15 +1252,6 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
                  **({} if sized is None else {"sized_shape": sized}))
     return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds,
             "fit_to_data_mm": gap, "reinitialised": reinitialised, "keypoints_rejected": rejected}
-
-
-def hold_shape(fitter: BodyFitter, estimates: list, batches: int) -> bool:
-    """Hold the fitter's phenotype at the mean of `estimates` once there are `batches` of them (one
-    person, one shape: later batches fit pose only). True when it holds it now."""
-    if batches <= 0 or len(estimates) < batches or fitter.held_shape is not None:
-        return False
-    fitter.held_shape = torch.as_tensor(np.mean(estimates, 0), dtype=fitter.model.dtype, device=fitter.cameras.K.device)
-    return True
 
 
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")

@@ -74,6 +74,44 @@ def frame_chunks(T: int, workers: int, min_frames: int, align: int = 1, context:
     return [Chunk(a, b, max(0, a - context), min(T, b + context)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
+def lockstep(runs: list, serve: Callable[[list], list]) -> list:
+    """Runs generators side by side: each round, `serve` gets the pending request of every unfinished
+    run (in run order) and returns one reply per request, each sent back to its run (so one
+    evaluation serves them all). Returns the runs' results in order."""
+    results, pending = [None] * len(runs), {}
+
+    def advance(k: int, reply) -> None:
+        try:
+            pending[k] = runs[k].send(reply)
+        except StopIteration as finished:
+            pending.pop(k, None)
+            results[k] = finished.value
+
+    for k in range(len(runs)):
+        advance(k, None)
+    while pending:
+        order = sorted(pending)
+        for k, reply in zip(order, serve([pending[k] for k in order])):
+            advance(k, reply)
+    return results
+
+
+def side_by_side(cfg, section) -> int:
+    """Chunks one process runs side by side in a stage: its config `section`'s `side_by_side`, or
+    `side_by_side_gpu` on CUDA (a GPU's step costs its kernel launches, whatever the chunks)."""
+    return max(1, section.side_by_side_gpu if on_gpu(cfg) else section.side_by_side)
+
+
+def chunk_groups(T: int, cfg, section, align: int = 1) -> list[tuple[Chunk, ...]]:
+    """The take's chunks (`run.workers` x `side_by_side`), dealt to the processes: each process runs
+    a run of consecutive chunks side by side."""
+    workers = worker_count(cfg)
+    chunks = frame_chunks(T, workers * side_by_side(cfg, section), cfg.run.min_frames_per_worker, align)
+    n = min(workers, len(chunks))
+    bounds = [round(k * len(chunks) / n) for k in range(n + 1)]
+    return [tuple(chunks[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+
+
 def _init_worker(threads: int) -> None:
     import torch
 

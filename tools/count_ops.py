@@ -10,15 +10,17 @@ frame (25 us per kernel: a floor), and a change that cuts it can be measured
 without a GPU.
 
 Runs the pipeline in one process (`run.workers=1`, as a GPU runs it; each stage
-redone) and counts every aten operation the selected stages dispatch
+redone; the renderer cuts its work in a GPU's chunks) and counts every aten operation the selected stages dispatch
 (`TorchDispatchMode`): all of them, the kernels among them (views, reshapes
 and selections launch nothing) and the kernels of the backward passes, per
 frame; then the intercap functions that issue most forward kernels (an
 operation inside a library, e.g. the body model, counts at its intercap
 caller). Counting slows the run several times: its timings mean nothing.
 
-    python -m tools.count_ops --session data_samples/sample [--stages object,body,global]
+    python -m tools.count_ops --session data_samples/sample [--stages object,body,global] [--alone]
                               [--out DIR] [--sites 15] [--set SECTION.KEY=VALUE ...]
+
+`--alone` runs only the counted stages (for one that needs no earlier stage's results: object).
 
 `--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=144` runs the
 GPU's settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`, `global.window_frames_gpu`).
@@ -72,8 +74,10 @@ def issuing_function(frame) -> str:
     return "-"
 
 
-def count_stages(session: Path, out: Path, stages: list[str], overrides: list[str]) -> tuple[dict, int]:
-    """Run the pipeline on `session` into `out`, counting inside `stages`: ({stage: OperationCount}, frames)."""
+def count_stages(session: Path, out: Path, stages: list[str], overrides: list[str],
+                 alone: bool = False) -> tuple[dict, int]:
+    """Run the pipeline (or, `alone`, only `stages`) on `session` into `out`, counting inside `stages`:
+    ({stage: OperationCount}, frames)."""
     from intercap import pipeline
     from intercap.config import load_config
     from intercap.session import Session
@@ -88,13 +92,18 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
                 return run(session, cfg, out_dir, progress)
         return run_counting
 
+    from intercap.geometry import rendering
+
+    cpu_pairs = rendering.MAX_PAIRS["cpu"]
+    rendering.MAX_PAIRS["cpu"] = rendering.MAX_PAIRS["cuda"]  # the renderer's work in a GPU's chunks
     try:
         for name in stages:
             pipeline.STAGES[name] = dataclasses.replace(originals[name], run=counted(name, originals[name].run))
         cfg = load_config(overrides=["run.force=true", "run.workers=1", "report.enabled=false", *overrides])
-        pipeline.run_pipeline(session, out, cfg, progress=False)
+        pipeline.run_pipeline(session, out, cfg, stages=stages if alone else None, progress=False)
     finally:
         pipeline.STAGES.update(originals)
+        rendering.MAX_PAIRS["cpu"] = cpu_pairs
     return counts, Session.load(session).num_frames
 
 
@@ -102,6 +111,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--session", type=Path, required=True)
     parser.add_argument("--stages", default="object,body,global", help="the stages to count (all stages run)")
+    parser.add_argument("--alone", action="store_true", help="run only the counted stages, not the whole pipeline")
     parser.add_argument("--out", type=Path, help="results folder (default: a temporary one)")
     parser.add_argument("--sites", type=int, default=15, help="issuing functions listed per stage")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
@@ -114,7 +124,7 @@ def main(argv=None) -> None:
     if unknown:
         parser.error(f"unknown stage(s) {', '.join(unknown)}; available: {', '.join(STAGES)}")
     with tempfile.TemporaryDirectory(prefix="count_ops_") as scratch:
-        counts, T = count_stages(args.session, args.out or Path(scratch), stages, args.set)
+        counts, T = count_stages(args.session, args.out or Path(scratch), stages, args.set, args.alone)
 
     print(f"\noperations per frame on {args.session} ({T} frames; {' '.join(args.set) or 'default settings'})")
     print(f"{'stage':8s} {'all':>9s} {'kernels':>9s} {'backward':>9s} {'H100 s/frame >= (25 us each)':>29s}")

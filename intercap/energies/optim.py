@@ -6,7 +6,8 @@ decrease of the energy between steps falls below `ftol`, the largest gradient
 entry below `gtol`, or `max_steps` is reached. A monitor callback sees every
 step (progress display, correspondence updates). `minimise_per_frame` runs the
 same loop for a batch of independent problems (the body's frames), one L-BFGS
-per frame in the same tensors.
+per frame in the same tensors. `AdamRows` is Adam for such batches (the object's
+pose fits), each row its own problem.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
+import numpy as np
 import torch
 
 
@@ -194,3 +196,32 @@ def minimise_per_frame(
     with torch.no_grad():
         final = float(energy_fn().sum())
     return MinimiseResult(final, step, evaluations, stopped)
+
+
+class AdamRows:
+    """torch.optim.Adam's update for parameters whose rows are separate problems (P rows each): a
+    row keeps its own step count and step-size scale (`scale`, 1 at first), and a step moves only
+    the rows named. With one row it is Adam itself."""
+
+    def __init__(self, params: list[torch.Tensor], lrs: list[float], rows: int,
+                 betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
+        self.params, self.lrs, self.betas, self.eps = params, lrs, betas, eps
+        self.moments = [(torch.zeros_like(p), torch.zeros_like(p)) for p in params]
+        self.count, self.scale = np.zeros(rows, int), np.ones(rows)
+
+    @torch.no_grad()
+    def step(self, rows: np.ndarray) -> None:
+        """One step of `rows` along the gradients in the parameters' .grad, which it then clears."""
+        b1, b2 = self.betas
+        self.count[rows] += 1
+        n = self.count[rows]
+        dev, dtype = self.params[0].device, self.params[0].dtype
+        size = torch.as_tensor(self.scale[rows] / (1 - b1 ** n), dtype=dtype, device=dev)[:, None]
+        root = torch.as_tensor(np.sqrt(1 - b2 ** n), dtype=dtype, device=dev)[:, None]
+        at = slice(None) if len(rows) == len(self.count) else torch.as_tensor(rows, device=dev)
+        for p, lr, (m, v) in zip(self.params, self.lrs, self.moments):
+            g = p.grad[at]
+            m[at] = m[at].lerp(g, 1 - b1)
+            v[at] = v[at] * b2 + (1 - b2) * g * g
+            p[at] = p[at] - (lr * size) * m[at] / (v[at].sqrt() / root + self.eps)
+            p.grad = None

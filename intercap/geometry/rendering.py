@@ -90,6 +90,8 @@ from intercap.geometry.cameras import Cameras, project, world_to_camera
 
 DEFAULT_SIZE = (64, 64)  # output crop (h, w): ~10 ms forward + backward for 4 views of a 500-face object
 _NO_KEY = torch.iinfo(torch.int64).max
+# `max_pairs` by default: small chunks stay in the CPU allocator's cache; a GPU takes a frame in one
+MAX_PAIRS = {"cpu": 1 << 15, "cuda": 1 << 22}
 _DEPTH_KEY_SCALE = 1e5  # z quantised to 10 um for the z-buffer's tie order only
 _DIST_KEY_SCALE = 1e4  # edge distances quantised to 1e-4 px for the nearest-edge choice only
 
@@ -609,7 +611,7 @@ def render(
 
     faces = topo.faces
     band = band_sigmas * sigma
-    chunk = max_pairs or (1 << 15 if device.type == "cpu" else 1 << 22)
+    chunk = max_pairs or MAX_PAIRS.get(device.type, MAX_PAIRS["cuda"])
     with torch.no_grad():
         valid_v = valid_v.reshape(N * V)
         uv_d = uv.detach()

@@ -49,7 +49,8 @@ from intercap.energies.optim import minimise, minimise_per_frame
 from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
 from intercap.geometry.ground import up_hint_from_cameras
 from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
-from intercap.parallel import Chunk, frame_chunks, on_gpu, run_chunks, worker_count
+from intercap.parallel import Chunk, lockstep, on_gpu, run_chunks
+from intercap.parallel import chunk_groups as parallel_chunk_groups
 
 log = logging.getLogger(__name__)
 
@@ -998,19 +999,9 @@ def batch_frames(cfg) -> int:
     return cfg.body.batch_frames_gpu if on_gpu(cfg) else cfg.body.batch_frames
 
 
-def side_by_side(cfg) -> int:
-    """Chunks one process fits side by side: `body.side_by_side`, or `body.side_by_side_gpu` on CUDA."""
-    return max(1, cfg.body.side_by_side_gpu if on_gpu(cfg) else cfg.body.side_by_side)
-
-
 def chunk_groups(T: int, cfg) -> list[tuple[Chunk, ...]]:
-    """The take's chunks (`run.workers` x `side_by_side`), dealt to the processes: each process fits a
-    run of consecutive chunks side by side."""
-    workers = worker_count(cfg)
-    chunks = frame_chunks(T, workers * side_by_side(cfg), cfg.run.min_frames_per_worker, batch_frames(cfg))
-    n = min(workers, len(chunks))
-    bounds = [round(k * len(chunks) / n) for k in range(n + 1)]
-    return [tuple(chunks[a:b]) for a, b in zip(bounds[:-1], bounds[1:])]
+    """The take's body chunks dealt to the processes (`intercap.parallel.chunk_groups`), cut on batches."""
+    return parallel_chunk_groups(T, cfg, cfg.body, batch_frames(cfg))
 
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
@@ -1102,20 +1093,8 @@ def fit_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) ->
     `chunk_batches`' result per chunk."""
     workshop = ChunkWorkshop.open(session, cfg, out_dir)
     runs = [chunk_batches(workshop, chunk, queue) for chunk in chunks]
-    results, requests = [None] * len(runs), {}
 
-    def advance(k: int, reply) -> None:
-        try:
-            requests[k] = runs[k].send(reply)
-        except StopIteration as finished:
-            requests.pop(k, None)
-            results[k] = finished.value
-
-    for k in range(len(runs)):
-        advance(k, None)
-    while requests:
-        order = sorted(requests)
-        batches = [requests[k] for k in order]
+    def serve(batches: list) -> list:
         obs = BodyObservations.cat([sub for sub, _ in batches])
         groups, first = [], 0  # each chunk its phenotype, as if fitted alone
         for sub, _ in batches:
@@ -1126,13 +1105,15 @@ def fit_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) ->
         params, stats = workshop.fitter.fit(obs, BodyParams.cat([init for _, init in batches]),
                                             shape_groups=torch.cat(groups).to(obs.keypoints.device))
         seconds = (time.perf_counter() - start) / obs.batch_size
-        row = 0
-        for k, (sub, _) in zip(order, batches):
+        replies, row = [], 0
+        for sub, _ in batches:
             rows = slice(row, row + sub.batch_size)
             row = rows.stop
-            advance(k, (params[rows], {"terms": {name: v[rows] for name, v in stats["terms"].items()}},
-                        seconds * sub.batch_size))
-    return results
+            replies.append((params[rows], {"terms": {name: v[rows] for name, v in stats["terms"].items()}},
+                            seconds * sub.batch_size))
+        return replies
+
+    return lockstep(runs, serve)
 
 
 def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):

@@ -42,7 +42,6 @@ import numpy as np
 import open3d as o3d
 import torch
 import trimesh
-from tqdm import tqdm
 
 from intercap.energies.losses import (
     matrix_to_rotation_6d,
@@ -51,6 +50,7 @@ from intercap.energies.losses import (
     occlusion_weight,
     rotation_6d_to_matrix,
 )
+from intercap.energies.optim import AdamRows
 from intercap.geometry.cameras import Cameras, pixel_rays, project
 from intercap.geometry.rendering import MeshTopology, crop_observation, render
 from intercap.geometry.segmentation import (
@@ -63,7 +63,7 @@ from intercap.geometry.segmentation import (
 )
 from intercap.geometry.symmetry import axis_angle_matrix
 from intercap.io.files import publish, save_npz
-from intercap.parallel import Chunk, frame_chunks, run_chunks, worker_count
+from intercap.parallel import Chunk, chunk_groups, lockstep, run_chunks
 
 log = logging.getLogger(__name__)
 reg = o3d.pipelines.registration
@@ -303,10 +303,6 @@ class ObjectTracker:
         return self._pixel_points(c, ys, xs, depth[ys, xs].astype(np.float64))
 
     # -- pose helpers ---------------------------------------------------------------------
-    def world_vertices(self, R: torch.Tensor, t_c: torch.Tensor) -> torch.Tensor:
-        """Centred model vertices posed by (R, centre translation) -> (V, 3)."""
-        return self.vertices_c @ R.T + t_c
-
     def world_vertices_np(self, R, t) -> np.ndarray:
         """Vertices of the original mesh under object->world pose (R, t)."""
         return (self.vertices_c.double().cpu().numpy() + self.centroid) @ np.asarray(R).T + np.asarray(t)
@@ -344,91 +340,133 @@ class ObjectTracker:
         return torch.maximum(visible, (obs_mask > 0.5).to(visible.dtype))
 
     def energy_terms(self, obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops):
-        """E_O at a pose: (total, silhouette, depth, render output)."""
+        """E_O of P poses, each against its own windows: (total, silhouette, depth) (P,) and the
+        render output. obs_* (P, C, h, w), view_weight (P, C), R (P, 3, 3), t_c (P, 3), crops (P, C, 4)."""
         cfg = self.cfg
-        out = render(self.world_vertices(R, t_c)[None], self.topology, self.cameras, crops[None],
+        out = render(self.vertices_c @ R.transpose(1, 2) + t_c[:, None], self.topology, self.cameras, crops,
                      size=(cfg.crop_size, cfg.crop_size), sigma=cfg.sigma_px)
-        rendered_depth = out.depth[0]
-        visible = self._visible(rendered_depth.detach(), obs_depth, obs_mask)  # (C, h, w)
-        view_weight = view_weight[:, None, None]
-        sil = object_silhouette(out.silhouette, obs_mask[None], (visible * obs_known * view_weight)[None])
+        visible = self._visible(out.depth.detach(), obs_depth, obs_mask)  # (P, C, h, w)
+        view_weight = view_weight[:, :, None, None]
+        sil = object_silhouette(out.silhouette, obs_mask, visible * obs_known * view_weight)
         # Every observed object pixel counts, covered or not: an uncovered one pays the full
         # robust cost, so rendering nothing (or too little) is never the cheap answer.
         depth_weight = (obs_mask > 0.5) & (obs_depth > 0)
-        dep = object_depth(rendered_depth[None], obs_depth[None], (depth_weight * visible * view_weight)[None], cfg.depth_scale_m)
-        total = cfg.w_silhouette * sil + cfg.w_depth * dep
-        return total[0], sil[0], dep[0], out
+        dep = object_depth(out.depth, obs_depth, depth_weight * visible * view_weight, cfg.depth_scale_m)
+        return cfg.w_silhouette * sil + cfg.w_depth * dep, sil, dep, out
 
-    def fit(self, obs: Observation, R0, t0, iterations: int | None = None) -> Fit:
-        """Minimise E_O over (6D rotation, translation) from (R0, t0)."""
-        cfg = self.cfg
-        crops = self.crops_for(obs, R0, t0)
-        size = (cfg.crop_size, cfg.crop_size)
+    def windows(self, obs: Observation, crops: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The observation cut to `crops` (C, 4): the object's share of the known pixels, depth and
+        the known fraction, (C, h, w) each, on the fitting device."""
+        size = (self.cfg.crop_size, self.cfg.crop_size)
         obs_mask, obs_depth, obs_known = crop_windows(np.stack([obs.mask * obs.known, obs.depth, obs.known]), crops,
                                                       size, ("area", "nearest", "area"))
         # The object's share of the pixels whose label is known: where derived masks lose half of a
         # dark chair's depth to dropouts, the chair still fills its cells, at half the weight.
         obs_mask = torch.where(obs_known > 1e-3, obs_mask / obs_known.clamp(min=1e-3), torch.zeros_like(obs_mask))
         # the windows are cut on the CPU; the fit runs where the mesh and cameras are
-        obs_mask, obs_depth, obs_known = (x.to(self.device) for x in (obs_mask, obs_depth, obs_known))
-        view_weight = torch.as_tensor(obs.has_view, dtype=torch.float32, device=self.device)
-        r6 = matrix_to_rotation_6d(torch.tensor(np.asarray(R0), dtype=torch.float32, device=self.device)
-                                   ).clone().requires_grad_(True)
-        t_c = torch.as_tensor(self._to_centre(R0, t0), dtype=torch.float32, device=self.device
-                              ).clone().requires_grad_(True)
-        optimiser = torch.optim.Adam([{"params": [r6], "lr": cfg.lr_rotation}, {"params": [t_c], "lr": cfg.lr_translation}])
-        best = (np.inf, None, None)
-        stalled, decays = 0, 0
-        for _ in range(cfg.iterations if iterations is None else iterations):
-            optimiser.zero_grad()
-            total, _, _, _ = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight, rotation_6d_to_matrix(r6), t_c, crops)
-            value = total.item()
+        return tuple(x.to(self.device) for x in (obs_mask, obs_depth, obs_known))
+
+    def fit(self, obs: Observation, R0, t0, iterations: int | None = None) -> Fit:
+        """Minimise E_O over (6D rotation, translation) from (R0, t0) (`fit_many` of one)."""
+        return self.fit_many([(obs, R0, t0, iterations)])[0]
+
+    def settle(self, search):
+        """The result of one search (`recut`, `refit`, `initialise`, `track_steps`), run alone."""
+        return side_by_side(self, [search])[0]
+
+    def fit_many(self, requests: list[tuple]) -> list[Fit]:
+        """Minimise E_O from each request's pose, (obs, R0, t0, iterations or None for
+        `iterations`), all P fits in one render per step. Adam moves each parameter on its own, so
+        each fit keeps its own moments, step count, step sizes, early stopping and budget: the
+        result is each fit's alone, at the launches of one (a GPU's time follows the launches)."""
+        cfg = self.cfg
+        P, dev = len(requests), self.device
+        crops = torch.stack([self.crops_for(obs, R0, t0) for obs, R0, t0, _ in requests])  # (P, C, 4)
+        cut = [self.windows(obs, c) for (obs, *_), c in zip(requests, crops)]
+        obs_mask, obs_depth, obs_known = (torch.stack(parts) for parts in zip(*cut))
+        view_weight = torch.as_tensor(np.stack([obs.has_view for obs, *_ in requests]), dtype=torch.float32, device=dev)
+        budget = np.array([cfg.iterations if it is None else it for *_, it in requests])
+        R0 = torch.as_tensor(np.stack([np.asarray(R) for _, R, _, _ in requests]), dtype=torch.float32, device=dev)
+        r6 = matrix_to_rotation_6d(R0).clone().requires_grad_(True)
+        t_c = torch.as_tensor(np.stack([self._to_centre(R, t) for _, R, t, _ in requests]), dtype=torch.float32,
+                              device=dev).clone().requires_grad_(True)
+
+        crops = crops.to(dev)
+
+        def energy(rows=None):
+            """E_O of the fits `rows` (an index tensor; None: all), as (P,) tensors and the render."""
+            pick = (lambda x: x) if rows is None else (lambda x: x.index_select(0, rows))
+            return self.energy_terms(pick(obs_mask), pick(obs_depth), pick(obs_known), pick(view_weight),
+                                     rotation_6d_to_matrix(pick(r6)), pick(t_c), pick(crops))
+
+        adam = AdamRows([r6, t_c], [cfg.lr_rotation, cfg.lr_translation], P)
+        best_value, best_r6, best_t = np.full(P, np.inf), r6.detach().clone(), t_c.detach().clone()
+        stalled, decays, used = np.zeros(P, int), np.zeros(P, int), np.zeros(P, int)
+        done = budget <= used
+        while not done.all():
+            live = np.flatnonzero(~done)
+            total = energy(None if len(live) == P else torch.as_tensor(live, device=dev))[0]
+            value = total.detach().cpu().numpy()
             # No relative improvement of `stop_tolerance` for `stop_patience` steps: Adam is circling the
             # minimum at its step size; go back to the best pose with smaller steps, `lr_decays` times, then stop.
-            stalled = stalled + 1 if value > best[0] * (1 - cfg.stop_tolerance) else 0
-            if value < best[0]:
-                best = (value, r6.detach().clone(), t_c.detach().clone())
-            if stalled >= cfg.stop_patience:
-                if decays == cfg.lr_decays:
-                    break
-                decays, stalled = decays + 1, 0
+            stalled[live] = np.where(value > best_value[live] * (1 - cfg.stop_tolerance), stalled[live] + 1, 0)
+            better = value < best_value[live]
+            if better.any():
+                best_value[live[better]] = value[better]
+                at = torch.as_tensor(live[better], device=dev)
+                best_r6[at], best_t[at] = r6.detach()[at], t_c.detach()[at]
+            stop = stalled[live] >= cfg.stop_patience
+            done[live[stop & (decays[live] == cfg.lr_decays)]] = True
+            back = live[stop & (decays[live] < cfg.lr_decays)]
+            if len(back):
+                decays[back] += 1
+                stalled[back] = 0
+                adam.scale[back] *= cfg.lr_decay
+                at = torch.as_tensor(back, device=dev)
                 with torch.no_grad():
-                    r6.copy_(best[1])
-                    t_c.copy_(best[2])
-                for group in optimiser.param_groups:
-                    group["lr"] *= cfg.lr_decay
-                continue
-            total.backward()
-            optimiser.step()
+                    r6[at], t_c[at] = best_r6[at], best_t[at]
+            if not stop.all():
+                steps = total if not stop.any() else total[torch.as_tensor(np.flatnonzero(~stop), device=dev)]
+                steps.sum().backward()
+                adam.step(live[~stop])
+            used[live] += 1
+            done |= used >= budget
         with torch.no_grad():
-            R = rotation_6d_to_matrix(r6)
-            total, _, _, out = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops)
-            if total.item() > best[0]:
-                R, t_c = rotation_6d_to_matrix(best[1]), best[2]
-                total, _, _, out = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops)
+            total, _, _, out = energy()
+            worse = total.cpu().numpy() > best_value  # the last step went up: the best pose seen
+            if worse.any():
+                at = torch.as_tensor(np.flatnonzero(worse), device=dev)
+                r6[at], t_c[at] = best_r6[at], best_t[at]
+                total, _, _, out = energy()
             # IoU where the label is known and nothing stands in front of the rendered surface:
             # a hand over the object hides it from the mask without the pose being wrong.
-            seen = (obs_known > 0.25) & (self._visible(out.depth[0], obs_depth, obs_mask) > 0.5)
-            confidence = self._iou(out.coverage[0] & seen, (obs_mask > 0.5) & seen, obs.has_view)
-        R = R.detach().double().cpu().numpy()
-        return Fit(R=R, t=self._from_centre(R, t_c.detach().double().cpu().numpy()), energy=float(total),
-                   confidence=confidence)
+            seen = (obs_known > 0.25) & (self._visible(out.depth, obs_depth, obs_mask) > 0.5)
+            confidence = self._iou(out.coverage & seen, (obs_mask > 0.5) & seen, view_weight > 0)
+            R = rotation_6d_to_matrix(r6).double().cpu().numpy()
+            t_c, total = t_c.double().cpu().numpy(), total.cpu().numpy()
+        return [Fit(R=R[p], t=self._from_centre(R[p], t_c[p]), energy=float(total[p]), confidence=float(confidence[p]))
+                for p in range(P)]
 
-    def recut(self, frame_id: int, fit: Fit) -> tuple[Observation, Fit | None]:
-        """Derived masks cut round `fit`'s pose with no reach, and the fit refined on them (None when
-        no view keeps enough object pixels). A mask cut wide round a prediction (a fast lift) takes
-        in the hands and arms that hold the object; cut round the fit, it keeps the object alone."""
+    # The searches below are generators: each yields lists of fit requests for `fit_many` and is
+    # sent back their fits, so that `side_by_side` can fit the requests of several at once.
+    def recut(self, frame_id: int, fit: Fit):
+        """Search: derived masks cut round `fit`'s pose with no reach, and the fit refined on them;
+        returns (observation, fit or None when no view keeps enough object pixels). A mask cut wide
+        round a prediction (a fast lift) takes in the hands and arms that hold the object; cut round
+        the fit, it keeps the object alone."""
         obs = self.observe(frame_id, (fit.R, fit.t))
         if obs.visible_views < self.cfg.min_views:
             return obs, None
-        return obs, self.fit(obs, fit.R, fit.t)
+        (refined,) = yield [(obs, fit.R, fit.t, None)]
+        return obs, refined
 
     @staticmethod
-    def _iou(rendered: torch.Tensor, observed: torch.Tensor, has_view: np.ndarray) -> float:
-        inter = (rendered & observed).flatten(1).sum(1).float()
-        union = (rendered | observed).flatten(1).sum(1).float().clamp(min=1)
-        iou = (inter / union).cpu().numpy()[has_view]
-        return float(iou.mean()) if len(iou) else 0.0
+    def _iou(rendered: torch.Tensor, observed: torch.Tensor, has_view: torch.Tensor) -> np.ndarray:
+        """(P,) mean silhouette IoU over each fit's views that see the object (0 where none does)."""
+        inter = (rendered & observed).flatten(2).sum(2).float()
+        union = (rendered | observed).flatten(2).sum(2).float().clamp(min=1)
+        views = has_view.float()
+        return ((inter / union * views).sum(1) / views.sum(1).clamp(min=1)).cpu().numpy()
 
     # -- initialisation ----------------------------------------------------------------------
     def object_points(self, obs: Observation) -> np.ndarray:
@@ -512,41 +550,54 @@ class ObjectTracker:
             out.append((T[:3, :3], T[:3, 3]))
         return out
 
-    def refit(self, obs: Observation, fit: Fit, predicted) -> Fit:
-        """Local recovery before registration: the predicted pose and the fit's, each turned by
+    def refit(self, obs: Observation, fit: Fit, predicted):
+        """Search, returns a Fit: local recovery before registration: the predicted pose and the fit's, each turned by
         90/180/270 deg about every principal axis of the mesh (a chair's seat and legs look
         alike every 90 deg, only the backrest tells; a wrong turn drags the fit off the
         object's place, hence the prediction's turns), and the two lowest-E_O of them fitted
         with the full iteration budget."""
         starts = self.turned(*predicted) + self.turned(fit.R, fit.t)
-        scored = sorted((self.fit(obs, R, t, iterations=0) for R, t in starts), key=lambda f: f.energy)
-        fits = [self.fit(obs, f.R, f.t, iterations=self.cfg.iterations) for f in scored[:2]]
-        return min(fits, key=lambda f: f.energy)
+        scored = sorted((yield [(obs, R, t, 0) for R, t in starts]), key=lambda f: f.energy)
+        return min((yield [(obs, f.R, f.t, self.cfg.iterations) for f in scored[:2]]), key=lambda f: f.energy)
 
     def turned(self, R, t) -> list[tuple[np.ndarray, np.ndarray]]:
         """Pose (R, t) turned about its centre by 90/180/270 deg about each principal axis of the mesh."""
         centre = self._to_centre(R, t)
         return [(R @ S, self._from_centre(R @ S, centre)) for S in self.turns]
 
-    def initialise(self, obs: Observation, extra: list | None = None) -> Fit | None:
-        """Best of the registration hypotheses (plus `extra` poses): the few with the lowest
-        E_O get a short fit, the best of those the full one."""
+    def initialise(self, obs: Observation, extra: list | None = None):
+        """Search, returns a Fit or None: the best of the registration hypotheses (plus `extra`
+        poses): the few with the lowest E_O get a short fit, the best of those the full one."""
         hypotheses = list(extra or []) + self.registration_hypotheses(self.object_points(obs))
         if not hypotheses:
             return None
-        scored = sorted((self.fit(obs, R, t, iterations=0) for R, t in hypotheses), key=lambda f: f.energy)
-        fits = [self.fit(obs, f.R, f.t, iterations=self.cfg.init_iterations) for f in scored[: self.cfg.init_refine]]
-        best = min(fits, key=lambda f: f.energy)
-        return self.fit(obs, best.R, best.t)
+        scored = sorted((yield [(obs, R, t, 0) for R, t in hypotheses]), key=lambda f: f.energy)
+        best = min((yield [(obs, f.R, f.t, self.cfg.init_iterations) for f in scored[: self.cfg.init_refine]]),
+                   key=lambda f: f.energy)
+        (fit,) = yield [(obs, best.R, best.t, None)]
+        return fit
+
+
+def side_by_side(tracker: ObjectTracker, searches: list) -> list:
+    """Runs searches (generators of fit requests, sent their fits back) in lockstep: each round,
+    the pending requests of all of them in one `fit_many`. Returns their results in order."""
+
+    def serve(requests: list[list]) -> list[list[Fit]]:
+        fits = tracker.fit_many([request for mine in requests for request in mine])
+        bounds = np.cumsum([0] + [len(mine) for mine in requests])
+        return [fits[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+
+    return lockstep(searches, serve)
 
 
 TRACKED, REINITIALISED, LOST, UNTRUSTED = 1, 2, 3, 4
 STATUS_NAMES = {0: "pending", TRACKED: "tracked", REINITIALISED: "reinitialised", LOST: "lost", UNTRUSTED: "untrusted"}
 
 
-def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None = None, progress: bool = True,
-          initial_pose=None, queue=None) -> dict[str, np.ndarray]:
-    """Track the object through `frame_ids`; resumes from `checkpoint` when it exists.
+def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None = None, initial_pose=None,
+                queue=None):
+    """Search (see `side_by_side`): track the object through `frame_ids`; resumes from
+    `checkpoint` when it exists.
 
     Per frame: fit from the constant-velocity prediction (or, for up to
     `coast_frames` after the last trusted frame, from that frame's pose). A fit
@@ -562,7 +613,7 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
     Returns R (T,3,3), t (T,3) (NaN where untrusted), confidence (T,), status (T,),
     energy (T,) and confirmed (T,): a search found nothing better than the tracked
     pose, so its E_O is the new level (for the next 5 frames at least). With `queue`, each
-    finished frame is put on it (`intercap.parallel`) instead of showing a progress bar."""
+    finished frame is put on it (`intercap.parallel`)."""
     cfg = tracker.cfg
     T = len(frame_ids)
     state = {"R": np.full((T, 3, 3), np.nan), "t": np.full((T, 3), np.nan), "confidence": np.zeros(T),
@@ -578,7 +629,7 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
                 queue.put(start)
     history = [None if state["status"][i] not in (TRACKED, REINITIALISED) else (state["R"][i], state["t"][i])
                for i in range(start)]
-    for i in tqdm(range(start, T), desc="object", disable=not progress or queue is not None, initial=start, total=T):
+    for i in range(start, T):
         frame_id = int(frame_ids[i])
         predicted, reach = predict_pose(history), 0.0
         if predicted is None and i == 0 and initial_pose is not None:
@@ -616,21 +667,21 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
         fit, status = None, LOST
         if obs.visible_views >= cfg.min_views:
             if predicted is None:
-                fit, status = tracker.initialise(obs), REINITIALISED
+                fit, status = (yield from tracker.initialise(obs)), REINITIALISED
             else:
-                fit, status = tracker.fit(obs, *predicted), TRACKED
+                (fit,), status = (yield [(obs, *predicted, None)]), TRACKED
                 if reach > cfg.near_margin_m and not tracker.use_masks:
                     # A mask cut this wide round the prediction takes in the hands and arms of a
                     # fast lift: cut it again round the fit and refine there, if that agrees.
-                    tight_obs, tight = tracker.recut(frame_id, fit)
+                    tight_obs, tight = yield from tracker.recut(frame_id, fit)
                     if good(tight):
                         obs, fit = tight_obs, tight
                 if not good(fit):
-                    local = tracker.refit(obs, fit, predicted)
+                    local = yield from tracker.refit(obs, fit, predicted)
                     if local.energy < fit.energy:
                         fit = local
                     if not good(fit):
-                        alternative = tracker.initialise(obs, extra=[predicted, (fit.R, fit.t)])
+                        alternative = yield from tracker.initialise(obs, extra=[predicted, (fit.R, fit.t)])
                         better = alternative is not None and alternative.energy <= cfg.confirm_ratio * fit.energy
                         state["confirmed"][i] = not better
                         if alternative is not None and alternative.energy < fit.energy:
@@ -652,18 +703,20 @@ def track(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None
     return state
 
 
-def track_chunk(session, cfg, out_dir: Path, chunk: Chunk, queue) -> dict[str, np.ndarray]:
-    """`track` over frames [chunk.lo, chunk.hi) in a worker (`intercap.parallel`): a chunk after
-    the first starts without a prediction, from registration, as a lost object is found again."""
+def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) -> list[dict[str, np.ndarray]]:
+    """`track_steps` over each chunk's frames [lo, hi), the chunks side by side (`side_by_side`),
+    in a worker (`intercap.parallel`): a chunk after the first starts without a prediction, from
+    registration, as a lost object is found again. Each chunk keeps its own checkpoint."""
     from intercap.session import Session
 
     if not hasattr(session, "frame_ids"):
         session = Session.load(session)
     torch.manual_seed(cfg.object.seed)
     tracker = ObjectTracker(session, cfg.object, session.object.load_mesh(), device=cfg.run.device)
-    checkpoint = Path(out_dir) / "object" / f"progress_{chunk.lo:06d}_{chunk.hi:06d}.npz"
-    return track(tracker, session.frame_ids[chunk.lo:chunk.hi], checkpoint, False,
-                 session.object.initial_pose if chunk.lo == 0 else None, queue)
+    searches = [track_steps(tracker, session.frame_ids[c.lo:c.hi],
+                            Path(out_dir) / "object" / f"progress_{c.lo:06d}_{c.hi:06d}.npz",
+                            session.object.initial_pose if c.lo == 0 else None, queue) for c in chunks]
+    return side_by_side(tracker, searches)
 
 
 def draw_overlay(session, tracker: ObjectTracker, frame_id: int, R, t, path: Path) -> None:
@@ -689,9 +742,10 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     ocfg = cfg.object
     stage_dir = Path(out_dir) / "object"
     stage_dir.mkdir(parents=True, exist_ok=True)
-    chunks = frame_chunks(session.num_frames, worker_count(cfg), cfg.run.min_frames_per_worker)
-    where = session if len(chunks) == 1 else session.root  # workers load the session themselves
-    parts = run_chunks(track_chunk, chunks, (where, cfg, out_dir), session.num_frames, "object", progress)
+    groups = chunk_groups(session.num_frames, cfg, ocfg)
+    where = session if len(groups) == 1 else session.root  # workers load the session themselves
+    parts = [part for group in run_chunks(track_chunks, groups, (where, cfg, out_dir), session.num_frames, "object",
+                                          progress) for part in group]
     state = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
     tracker = ObjectTracker(session, ocfg, session.object.load_mesh(), device=cfg.run.device)
     valid = np.isin(state["status"], (TRACKED, REINITIALISED))

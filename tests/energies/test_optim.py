@@ -1,7 +1,8 @@
-"""The shared optimiser: per-frame L-BFGS solves independent problems as if each were alone."""
+"""The shared optimisers: per-frame L-BFGS and Adam per row solve independent problems as if each were alone."""
+import numpy as np
 import torch
 
-from intercap.energies.optim import minimise, minimise_per_frame
+from intercap.energies.optim import AdamRows, minimise, minimise_per_frame
 
 
 def frame_problems(targets: torch.Tensor, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -57,3 +58,28 @@ def test_a_frame_that_cannot_improve_stays_put_and_the_others_go_on():
     minimise_per_frame([x, z], energy, max_steps=20, inner_iterations=10, ftol=1e-12)
     assert float(x[1, 0]) == 0.0
     assert torch.allclose(x[[0, 2], 0], a[[0, 2]], atol=1e-4)
+
+
+def test_adam_rows_is_adam_per_row():
+    """`AdamRows` with one row is torch's Adam; rows step on their own (a row not named does not
+    move, and its step count waits), and a row's step-size scale is that row's learning rate."""
+    target = torch.tensor([[1.0, -2.0, 0.5], [3.0, 0.0, -1.0]])
+    reference = torch.zeros(1, 3, requires_grad=True)
+    adam = torch.optim.Adam([reference], lr=0.1)
+    rows = torch.zeros(2, 3, requires_grad=True)
+    ours = AdamRows([rows], [0.1], 2)
+    ours.scale[1] = 0.5
+    for k in range(20):
+        adam.zero_grad()
+        ((reference - target[:1]) ** 2).sum().backward()
+        adam.step()
+        ((rows - target) ** 2).sum().backward()
+        ours.step(np.array([0]) if k < 10 else np.array([0, 1]))
+    assert torch.allclose(rows[0], reference[0], atol=1e-6)
+    alone = torch.zeros(1, 3, requires_grad=True)  # row 1: 10 steps at half the rate, from 0
+    half = torch.optim.Adam([alone], lr=0.05)
+    for _ in range(10):
+        half.zero_grad()
+        ((alone - target[1:]) ** 2).sum().backward()
+        half.step()
+    assert torch.allclose(rows[1], alone[0], atol=1e-6)

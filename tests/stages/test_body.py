@@ -13,6 +13,7 @@ from intercap.body_models import BodyParams, load_body_model
 from intercap.config import load_config
 from intercap.energies import losses
 from intercap.geometry.cameras import Cameras, project
+from intercap.parallel import chunk_groups
 from intercap.pipeline import run_pipeline
 from intercap.session import Session
 from intercap.stages import body
@@ -348,6 +349,9 @@ def test_chunks_are_dealt_to_the_processes_in_runs():
                                  "run.min_frames_per_worker=10", "body.batch_frames_gpu=8"])
     assert [len(g) for g in body.chunk_groups(120, gpu)] == [4]  # one process on a GPU, four chunks in it
     assert [len(g) for g in body.chunk_groups(15, cfg)] == [1]  # too short to cut
+    # the object stage's own settings: one chunk per process on the CPU, side by side on a GPU
+    assert [len(g) for g in chunk_groups(120, cfg, cfg.object)] == [1, 1]
+    assert [len(g) for g in chunk_groups(120, gpu, gpu.object)] == [8]
 
 
 @pytest.mark.parametrize("workers, side_by_side", [(2, 1), (1, 2)])

@@ -160,7 +160,7 @@ def test_mask_cut_wide_round_a_fast_lift_is_recut_round_the_fit(tmp_path):
     wide = tracker.observe(frame, (R, t), reach_m=0.3)
     fit = tracker.fit(wide, R, t)
     assert fit.confidence < 0.5, fit
-    tight, refined = tracker.recut(frame, fit)
+    tight, refined = tracker.settle(tracker.recut(frame, fit))
     assert refined.confidence > 0.8 and np.linalg.norm(refined.t - t) < 0.01, refined
     for c in range(3):  # the views that see the box
         truth_mask = with_masks.read_mask(c, frame, "object")
@@ -179,7 +179,7 @@ def test_refit_recovers_a_quarter_turn(sample_tracker):
     R0 = R @ axis_rotation(axis, 90.0)
     t0 = t + R @ tracker.centroid - R0 @ tracker.centroid  # turned about the centroid
     wrong = tracker.fit(obs, R0, t0)
-    fixed = tracker.refit(obs, wrong, (R0, t0))
+    fixed = tracker.settle(tracker.refit(obs, wrong, (R0, t0)))
     assert fixed.energy < wrong.energy
     centre_error = np.linalg.norm(tracker._to_centre(fixed.R, fixed.t) - tracker._to_centre(R, t))
     axis_error = np.degrees(np.arccos(abs((fixed.R @ axis) @ (R @ axis))))
@@ -246,3 +246,42 @@ def test_registration_hypotheses_repeat_exactly(sample_tracker):
         assert len(again) == len(first)
         for (R0, t0), (R1, t1) in zip(first, again):
             assert np.array_equal(R0, R1) and np.array_equal(t0, t1)
+
+
+def test_fits_side_by_side_are_each_fit_alone(sample_tracker):
+    """`fit_many`: Adam moves each fit's parameters on its own, so a fit made beside others
+    (other frames, budgets, one that stops early, one not fitted at all) ends where it ends alone."""
+    tracker, session, truth = sample_tracker
+    rng = np.random.default_rng(3)
+    requests = []
+    for frame, iterations in ((2, None), (12, 5), (20, None), (12, 0)):
+        R, t = truth["R"][frame], truth["t"][frame]
+        turn = axis_rotation(rng.normal(size=3) / np.sqrt(3), 6.0)
+        requests.append((tracker.observe(frame, (R, t)), turn @ R, t + rng.normal(scale=0.01, size=3), iterations))
+    together = tracker.fit_many(requests)
+    for request, fit in zip(requests, together):
+        alone = tracker.fit(*request)
+        assert abs(fit.energy - alone.energy) < 1e-6 and abs(fit.confidence - alone.confidence) < 1e-6
+        assert np.abs(fit.R - alone.R).max() < 1e-5 and np.abs(fit.t - alone.t).max() < 1e-6
+    assert together[0].energy < tracker.fit(*requests[0][:3], iterations=0).energy  # the fits did move
+    assert np.allclose(together[3].R, requests[3][1], atol=1e-6)  # no budget: stays where it started
+
+
+def test_chunks_tracked_side_by_side_equal_chunks_tracked_apart(box_session, tmp_path):
+    """One process tracking two chunks side by side gives each chunk what a process of its own
+    gives it (the first chunk from the prediction, the second from registration)."""
+    from intercap.parallel import Chunk
+    from intercap.stages.object import track_chunks
+
+    cfg = load_config()
+    session = Session.load(box_session)
+    chunks = (Chunk(0, 5, 0, 5), Chunk(5, FRAMES, 5, FRAMES))
+    (tmp_path / "object").mkdir()
+    together = track_chunks(session, cfg, tmp_path, chunks, None)
+    for k, chunk in enumerate(chunks):
+        for f in (tmp_path / "object").glob("progress_*.npz"):
+            f.unlink()
+        (alone,) = track_chunks(session, cfg, tmp_path, (chunk,), None)
+        assert (alone["status"] == together[k]["status"]).all()
+        assert np.allclose(alone["t"], together[k]["t"], atol=1e-5, equal_nan=True)
+        assert np.isfinite(alone["t"]).sum() >= 4

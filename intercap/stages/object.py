@@ -390,8 +390,7 @@ class ObjectTracker:
         r6 = matrix_to_rotation_6d(R0).clone().requires_grad_(True)
         t_c = torch.as_tensor(np.stack([self._to_centre(R, t) for _, R, t, _ in requests]), dtype=torch.float32,
                               device=dev).clone().requires_grad_(True)
-
-        crops = crops.to(dev)
+        crops = crops.to(dev)  # cut on the CPU (`windows`), rendered where the fit runs
 
         def energy(rows=None):
             """E_O of the fits `rows` (an index tensor; None: all), as (P,) tensors and the render."""

@@ -161,8 +161,10 @@ def test_intercap_run_on_gpu_fits_the_sample(tmp_path):
 
     session = trimmed_copy(SAMPLE_SESSION, tmp_path / "session", FRAMES)
     out = tmp_path / "out"
+    # chunks of 4 frames: the object stage tracks three of them side by side (`object.side_by_side_gpu`)
     code = main(["run", str(session), "--out", str(out), "--quiet", "--set", "run.device=cuda",
-                 "--set", "report.enabled=false", "--set", "prepare.save_clouds=false"])
+                 "--set", "report.enabled=false", "--set", "prepare.save_clouds=false",
+                 "--set", "run.min_frames_per_worker=4"])
     assert code == 0
     assert not (out / "report").exists()
     metrics = json.loads((out / "metrics.json").read_text())
@@ -214,3 +216,40 @@ def keypoints_of(session, out_dir, ids, bcfg) -> np.ndarray:
     from intercap.stages.body import KeypointSource
 
     return KeypointSource(session, out_dir).batch(ids, bcfg.min_keypoint_confidence)
+
+
+def test_object_fits_side_by_side_on_gpu_match_cpu():
+    """`ObjectTracker.fit_many` on the GPU: three fits at once (different frames and budgets) end
+    where the CPU's do."""
+    from intercap.config import load_config
+    from intercap.session import Session
+    from intercap.stages.object import ObjectTracker, axis_rotation
+
+    session = Session.load(SAMPLE_SESSION)
+    cfg = load_config().object
+    truth = np.load(SAMPLE_SESSION / "ground_truth" / "object_poses.npz")
+    on_cpu, on_gpu = (ObjectTracker(session, cfg, session.object.load_mesh(), device=d) for d in ("cpu", DEVICE))
+    rng = np.random.default_rng(5)
+    requests = []
+    for frame, iterations in ((2, None), (12, 8), (20, None)):
+        R, t = truth["R"][frame], truth["t"][frame]
+        requests.append((on_cpu.observe(frame, (R, t)), axis_rotation(rng.normal(size=3) / np.sqrt(3), 5.0) @ R,
+                         t + rng.normal(scale=0.01, size=3), iterations))
+    for cpu, gpu in zip(on_cpu.fit_many(requests), on_gpu.fit_many(requests)):
+        assert abs(cpu.energy - gpu.energy) < 1e-3 * max(1.0, cpu.energy)
+        assert np.abs(cpu.t - gpu.t).max() < 1e-3 and np.abs(cpu.R - gpu.R).max() < 1e-2
+
+
+def test_dense_nearest_search_on_gpu_finds_what_the_trees_find():
+    """E_D's correspondences on the GPU (the dense matrix) are the CPU's k-d trees' ones."""
+    from intercap.energies.losses import nearest_points, nearest_visible_vertices
+
+    g = torch.Generator().manual_seed(6)
+    points, vertices = torch.rand(4, 3, 50, 3, generator=g), torch.rand(4, 80, 3, generator=g)
+    visible, valid = torch.rand(4, 3, 80, generator=g) > 0.3, torch.rand(4, 3, 50, generator=g) > 0.2
+    cpu = nearest_visible_vertices(points, vertices, visible)
+    gpu = nearest_visible_vertices(points.to(DEVICE), vertices.to(DEVICE), visible.to(DEVICE))
+    assert gpu.device.type == "cuda" and (gpu.cpu() == cpu).all()
+    cpu = nearest_points(vertices, visible, points, valid, 0.1)
+    gpu = nearest_points(vertices.to(DEVICE), visible.to(DEVICE), points.to(DEVICE), valid.to(DEVICE), 0.1)
+    assert (gpu.cpu() == cpu).all()

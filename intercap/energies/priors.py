@@ -470,17 +470,15 @@ def composed_quaternions(body_pose: torch.Tensor, bones: torch.Tensor, mirror: t
 
     Rows whose `mirror` (R, 3) is MIRROR (right side) compose mirrored rotations, i.e. read
     in the left side's convention."""
-    n = body_pose.shape[1]
+    B, n = body_pose.shape[:2]
     both = torch.cat([body_pose, body_pose * body_pose.new_tensor(MIRROR)], 1)  # (B, 2n, 3)
-    q = roma.rotvec_to_unitquat(both)  # (B, 2n, 4)
-    right = (mirror[:, 1] < 0).long() * n  # (R,) offset into the mirrored half
-    out = q[:, bones[:, 0] + right]
-    for k in range(1, bones.shape[1]):
-        rows = torch.nonzero(bones[:, k] >= 0).squeeze(1)  # only rows with a k-th bone
-        if len(rows) == 0:
-            break
-        product = roma.quat_product(out[:, rows], q[:, bones[rows, k] + right[rows]])
-        out = out.index_copy(1, rows, product)
+    identity = body_pose.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(B, 1, 4)
+    q = torch.cat([roma.rotvec_to_unitquat(both), identity], 1)  # (B, 2n + 1, 4)
+    right = (mirror[:, 1:2] < 0).long() * n  # (R, 1) offset into the mirrored half
+    index = torch.where(bones >= 0, bones + right, 2 * n)  # (R, K): a pad composes the identity (exactly)
+    out = q[:, index[:, 0]]
+    for k in range(1, bones.shape[1]):  # every row at once: no search for the rows that go on (a GPU sync)
+        out = roma.quat_product(out, q[:, index[:, k]])
     return out
 
 

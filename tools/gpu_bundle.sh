@@ -7,8 +7,10 @@
 #   .whl/deb/         libusb (open3d needs it; unpacked under /tmp there, not /)
 #   .gl/              the EGL loader packages (the generator renders with pyrender on EGL)
 # Then on the device, from the repository root: `bash tools/gpu_bench.sh` (carry .whl and .gl).
-# The sample session (13 MB) does not fit beside them: `git rm -r -q --cached data_samples` and
-# ignore it for the call, `git reset -q -- data_samples` after.
+#   .whl/sample/      the sample's first 12 frames (what tests/test_cuda.py reads), as the whole
+#                     sample (13 MB) does not fit beside the rest: for the call, `git rm -r -q --cached
+#                     data_samples` and add /data_samples/ to .git/info/exclude; after it,
+#                     `git reset -q -- data_samples` and take the line out again.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=.venv/bin/python
@@ -58,5 +60,7 @@ o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp
 mkdir -p /tmp/amd64/partial && apt-get $o update -qq
 (cd .whl/deb && apt-get $o download libusb-1.0-0)
 (cd .gl && apt-get $o download libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)
-rm -rf $work
+rm -rf .whl/sample $work
+(cd tests && ../$PY -c "from pathlib import Path; from conftest import SAMPLE_SESSION, trimmed_copy; \
+trimmed_copy(SAMPLE_SESSION, Path('../.whl/sample'), 12)")
 du -sh .whl .gl

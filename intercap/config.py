@@ -183,8 +183,9 @@ class GlobalConfig:
     here are those of the terms the global stage adds."""
 
     window_frames: int = 48  # frames optimised together; memory grows with it, the share fitted twice shrinks
-    window_frames_gpu: int = 144  # on CUDA, where a step costs its kernel launches: 150 frames in 2 windows, not 4,
-    # half the kernels per frame at the same accuracy (96 and 144 alike, measured on the CPU; BENCHMARKS.md)
+    window_frames_gpu: int = 300  # on CUDA, where a step costs its kernel launches: the step budget is per window, so
+    # kernels per frame fall with its length at the same accuracy (48 -> 144 -> 300 on the CPU: 150 frames in 1
+    # window, not 4; 600 frames 333 evaluations, not 556; BENCHMARKS.md); memory grows with it (437 MB at 144, H100)
     window_overlap: int = 8  # frames a window shares with the next (re-optimised with more future)
     window_history: int = 2  # of the shared frames, those held fixed at the previous window's result
     steps: int = 15  # L-BFGS steps per window

@@ -22,8 +22,9 @@ caller). Counting slows the run several times: its timings mean nothing.
 
 `--alone` runs only the counted stages (for one that needs no earlier stage's results: object).
 
-`--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=144` runs the
-GPU's settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`, `global.window_frames_gpu`).
+`--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=300 --set
+object.side_by_side=8` runs the GPU's settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`,
+`global.window_frames_gpu`, `object.side_by_side_gpu`).
 """
 from __future__ import annotations
 

@@ -285,3 +285,32 @@ def test_chunks_tracked_side_by_side_equal_chunks_tracked_apart(box_session, tmp
         assert (alone["status"] == together[k]["status"]).all()
         assert np.allclose(alone["t"], together[k]["t"], atol=1e-5, equal_nan=True)
         assert np.isfinite(alone["t"]).sum() >= 4
+
+
+def test_chunks_side_by_side_resume_where_each_stopped(box_session, tmp_path):
+    """Two chunks tracked side by side, each with its own checkpoint: after a kill, each resumes at
+    its own frame (a finished frame is not fitted again: a mark left in it stays), and the frames
+    fitted after the kill come out as the uninterrupted run's."""
+    cfg = load_config(overrides=["run.workers=1", "object.side_by_side=2", "run.min_frames_per_worker=4",
+                                 "object.checkpoint_every=1"])
+    run_pipeline(box_session, tmp_path, cfg, stages=["object"], progress=False)
+    full = np.load(tmp_path / "object_poses.npz")
+    checkpoints = sorted((tmp_path / "object").glob("progress_*.npz"))
+    assert [c.name for c in checkpoints] == ["progress_000000_000005.npz", "progress_000005_000010.npz"]
+    for checkpoint, stop in zip(checkpoints, (3, 1)):  # the first chunk died after 3 frames, the second after 1
+        progress = dict(np.load(checkpoint))
+        for key in ("R", "t"):
+            progress[key][stop:] = np.nan
+        progress["status"][stop:] = 0
+        progress["energy"][stop:] = np.nan
+        progress["next"] = np.array(stop)
+        if stop == 3:
+            progress["t"][0] += 0.5  # the mark: frame 0 is done (no later prediction reads it)
+        np.savez(checkpoint, **progress)
+    (tmp_path / "object" / "DONE.json").unlink()
+    (tmp_path / "object_poses.npz").unlink()
+    run_pipeline(box_session, tmp_path, cfg, stages=["object"], progress=False)
+    resumed = np.load(tmp_path / "object_poses.npz")
+    assert (resumed["status"] == full["status"]).all()
+    assert np.allclose(resumed["t"][0], full["t"][0] + 0.5)
+    assert np.allclose(resumed["t"][1:], full["t"][1:], atol=1e-6, equal_nan=True)

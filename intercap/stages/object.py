@@ -372,7 +372,7 @@ class ObjectTracker:
 
     def settle(self, search):
         """The result of one search (`recut`, `refit`, `initialise`, `track_steps`), run alone."""
-        return side_by_side(self, [search])[0]
+        return run_searches(self, [search])[0]
 
     def fit_many(self, requests: list[tuple]) -> list[Fit]:
         """Minimise E_O from each request's pose, (obs, R0, t0, iterations or None for
@@ -447,7 +447,7 @@ class ObjectTracker:
                 for p in range(P)]
 
     # The searches below are generators: each yields lists of fit requests for `fit_many` and is
-    # sent back their fits, so that `side_by_side` can fit the requests of several at once.
+    # sent back their fits, so that `run_searches` can fit the requests of several at once.
     def recut(self, frame_id: int, fit: Fit):
         """Search: derived masks cut round `fit`'s pose with no reach, and the fit refined on them;
         returns (observation, fit or None when no view keeps enough object pixels). A mask cut wide
@@ -577,7 +577,7 @@ class ObjectTracker:
         return fit
 
 
-def side_by_side(tracker: ObjectTracker, searches: list) -> list:
+def run_searches(tracker: ObjectTracker, searches: list) -> list:
     """Runs searches (generators of fit requests, sent their fits back) in lockstep: each round,
     the pending requests of all of them in one `fit_many`. Returns their results in order."""
 
@@ -595,7 +595,7 @@ STATUS_NAMES = {0: "pending", TRACKED: "tracked", REINITIALISED: "reinitialised"
 
 def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None = None, initial_pose=None,
                 queue=None):
-    """Search (see `side_by_side`): track the object through `frame_ids`; resumes from
+    """Search (see `run_searches`): track the object through `frame_ids`; resumes from
     `checkpoint` when it exists.
 
     Per frame: fit from the constant-velocity prediction (or, for up to
@@ -703,7 +703,7 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path 
 
 
 def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) -> list[dict[str, np.ndarray]]:
-    """`track_steps` over each chunk's frames [lo, hi), the chunks side by side (`side_by_side`),
+    """`track_steps` over each chunk's frames [lo, hi), the chunks side by side (`run_searches`),
     in a worker (`intercap.parallel`): a chunk after the first starts without a prediction, from
     registration, as a lost object is found again. Each chunk keeps its own checkpoint."""
     from intercap.session import Session
@@ -715,7 +715,7 @@ def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) 
     searches = [track_steps(tracker, session.frame_ids[c.lo:c.hi],
                             Path(out_dir) / "object" / f"progress_{c.lo:06d}_{c.hi:06d}.npz",
                             session.object.initial_pose if c.lo == 0 else None, queue) for c in chunks]
-    return side_by_side(tracker, searches)
+    return run_searches(tracker, searches)
 
 
 def draw_overlay(session, tracker: ObjectTracker, frame_id: int, R, t, path: Path) -> None:

@@ -24,6 +24,11 @@ deg), then by registration. Frames whose best fit still disagrees with the
 observations, or where no view sees the object, get NaN poses and confidence 0
 (marked, never invented).
 
+Every fit is a request that `ObjectTracker.fit_many` serves together with others: a search's
+candidate poses, and on a GPU the current frames of several chunks of the take tracked side by
+side (`object.side_by_side_gpu`). Each fit keeps its own Adam state and stopping, so it ends
+where it would alone, at one render per step for all.
+
 Writes OUT/object/object_poses.npz (R (T,3,3), t (T,3), confidence (T,), valid (T,),
 frame_ids (T,)), shown as OUT/object_poses.npz until the `global` stage
 replaces that with its own, OUT/object/progress_LO_HI.npz per chunk of frames while running (resume), and
@@ -550,10 +555,10 @@ class ObjectTracker:
         return out
 
     def refit(self, obs: Observation, fit: Fit, predicted):
-        """Search, returns a Fit: local recovery before registration: the predicted pose and the fit's, each turned by
-        90/180/270 deg about every principal axis of the mesh (a chair's seat and legs look
-        alike every 90 deg, only the backrest tells; a wrong turn drags the fit off the
-        object's place, hence the prediction's turns), and the two lowest-E_O of them fitted
+        """Search, returns a Fit: local recovery before registration. The predicted pose and the
+        fit's, each turned by 90/180/270 deg about every principal axis of the mesh (a chair's seat
+        and legs look alike every 90 deg, only the backrest tells; a wrong turn drags the fit off
+        the object's place, hence the prediction's turns), and the two lowest-E_O of them fitted
         with the full iteration budget."""
         starts = self.turned(*predicted) + self.turned(fit.R, fit.t)
         scored = sorted((yield [(obs, R, t, 0) for R, t in starts]), key=lambda f: f.energy)

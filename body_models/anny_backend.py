@@ -366,11 +366,12 @@ class AnnyBody(BodyModel):
         """`rest_state`'s gathers for `vertex_ids` and the fingertips (ids, skinning weights, template
         positions, blend shapes as an (A, n * 3) matrix), kept for the last few vertex sets asked: a
         fit asks for the same ones (its fitting vertices, all of them for E_D's normals) thousands of
-        times, and the gather cost more than the blend. Skinning weights are sparse on the CPU (CUDA
-        keeps the dense product, which it runs in one kernel)."""
+        times, and the gather cost more than the blend (callers do not change vertex ids in place: a
+        tensor asked before is known by identity, without reading it back from a GPU). Skinning
+        weights are sparse on the CPU (CUDA keeps the dense product, which it runs in one kernel)."""
         cache = self.__dict__.setdefault("_vertex_tables_cache", [])
-        for ids, tables in cache:
-            if ids.shape == vertex_ids.shape and torch.equal(ids, vertex_ids):
+        for source, ids, tables in cache:  # the same tensor object first: comparing values makes a GPU wait
+            if source is vertex_ids or (ids.shape == vertex_ids.shape and torch.equal(ids, vertex_ids)):
                 return tables
         core = self.core
         ids = torch.cat([vertex_ids.to(self.fingertip_vertex_ids), self.fingertip_vertex_ids])
@@ -378,7 +379,7 @@ class AnnyBody(BodyModel):
         if skin.device.type == "cpu":
             skin = SparseSkin.from_dense(skin)
         tables = (ids, skin, core.template_vertices[ids], core.blendshapes[:, ids].reshape(core.blendshapes.shape[0], -1))
-        cache.insert(0, (vertex_ids.clone(), tables))
+        cache.insert(0, (vertex_ids, vertex_ids.clone(), tables))
         del cache[4:]
         return tables
 

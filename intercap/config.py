@@ -160,6 +160,7 @@ class BodyConfig:
     full_steps: int = 20  # + hands, with the depth term and self-penetration (10: stoops stay 2x off, BENCHMARKS.md)
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
+    cuda_graphs: bool = True  # on CUDA a phase's evaluations replay one recorded graph (where the phenotype is fixed)
     per_frame_lbfgs: bool = True  # each frame its own L-BFGS (`minimise_per_frame`) where the frames do not interact;
     # false: one L-BFGS over the batch's summed energy (150 frames, 32-frame batches: surface 6.2 against 5.8 mm)
     # tracking: a frame whose person points lie far from its fit (median distance, mm), or, seen with
@@ -193,6 +194,7 @@ class GlobalConfig:
     # faster, MPJPE +4 %, penetration +5 %; at 5 fps 12 steps cost penetration 9 %: BENCHMARKS.md)
     inner_iterations: int = 8
     ftol: float = 1.0e-6
+    cuda_graphs: bool = True  # on CUDA a window's evaluations replay one recorded graph (`optim.gradient_evaluator`)
     correspondence_every: int = 5  # E_D / E_O data association refreshed every this many steps
     object_points_per_view: int = 300  # object depth points per view for E_O
     object_depth_scale_m: float = 0.02  # Geman-McClure scale of E_O's point-to-surface distance

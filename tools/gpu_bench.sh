@@ -3,7 +3,8 @@
 # tools/gpu_bundle.sh): the 150-frame bench session is generated there (about a minute, the anny
 # cache included), the pipeline runs on CUDA with the profiler, then on the CPU with
 # CPU_WORKERS workers. First, unless TESTS_S=0, tests/test_cuda.py (a broken CUDA path shows
-# there in a minute or two). Logs, metrics and the profile go to $OUT.
+# there in a minute or two; TESTS names other test ids); CPU_S=0 skips the CPU run. Logs, metrics
+# and the profile go to $OUT.
 #   TESTS_S=200 FRAMES=150 GPU_S=420 CPU_S=230 CPU_WORKERS=8 bash tools/gpu_bench.sh
 T0=$(date +%s)
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
@@ -13,7 +14,7 @@ export LD_LIBRARY_PATH=$(dirname "$(find /tmp/usb -name libusb-1.0.so.0 | head -
 mkdir -p /tmp/site && tar xJf .whl/site.tar.xz -C /tmp/site || exit 1
 # body_models/ and calib/ install inside the package (setup.cfg's package_dir); here they are linked
 ln -sfn ../body_models intercap/body_models; ln -sfn ../calib intercap/calib
-[ -d data_samples/sample ] || { mkdir -p data_samples && cp -r .whl/sample data_samples/sample; }  # 12 frames
+[ -f data_samples/sample/calibration.json ] || { rm -rf data_samples/sample; mkdir -p data_samples; cp -r .whl/sample data_samples/sample; }  # 12 frames
 export PYGLET_HEADLESS=true PYTHONPATH=/tmp/site:$PWD PYOPENGL_PLATFORM=egl PYTHONUNBUFFERED=1
 nvidia-smi -L; nproc
 python3 -c "import torch, intercap.body_models.anny_backend, open3d, pyrender, roma; print(torch.__version__, torch.cuda.is_available())" || exit 1
@@ -27,9 +28,10 @@ bench() {  # NAME TIMEOUT ARGS...
     cp /tmp/k_$name/*_out/profile.txt "$OUT/${name}_profile.txt" 2>/dev/null
 }
 if [ "${TESTS_S:-200}" != 0 ]; then
-    timeout "${TESTS_S:-200}" python3 -m pytest -q -p no:cacheprovider tests/test_cuda.py > "$OUT/test_cuda.log" 2>&1
+    timeout "${TESTS_S:-200}" python3 -m pytest -q -p no:cacheprovider ${TESTS:-tests/test_cuda.py} > "$OUT/test_cuda.log" 2>&1
     echo "test_cuda: rc $? after $(( $(date +%s) - T0 )) s"; tail -n 15 "$OUT/test_cuda.log"
 fi
 bench gpu "${GPU_S:-420}" --set run.device=cuda --profile
+[ "${CPU_S:-230}" = 0 ] && exit 0  # CPU_S=0: no CPU run
 session=$(ls -d /tmp/k_gpu/*/ | grep -v _out/ | head -1)  # the CPU run takes the same session
 bench cpu "${CPU_S:-230}" --session "$session" --set run.workers="${CPU_WORKERS:-8}"

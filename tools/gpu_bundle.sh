@@ -40,7 +40,7 @@ text = text.replace("from ._external_visualizer import *\n", "from ._external_vi
 open(path, "w").write(text)
 PYEOF
 # anny: its code and the data files it reads while it builds its cache (a fresh one, about a minute)
-# and our model, found with an audit hook on `open`.
+# and our model, found with an audit hook on `open`; its dist-info (it asks for its own version).
 OMP_NUM_THREADS=2 $PY - "$work/anny_cache" > $work/anny_files <<'PYEOF'
 import os, sys
 read = set()
@@ -53,7 +53,7 @@ import anny
 root = os.path.dirname(os.path.dirname(anny.__file__))
 print("\n".join(sorted(os.path.relpath(p, root) for p in read)))
 PYEOF
-(cd $SP && { find anny -name "*.py"; cat $work/anny_files; } | tar cf - -T -) | tar xf - -C $site
+(cd $SP && { find anny -name "*.py"; find anny-*.dist-info -type f; cat $work/anny_files; } | tar cf - -T -) | tar xf - -C $site
 find $site -name __pycache__ -prune -exec rm -rf {} +
 tar cf - -C $site . | xz -T0 -7 > .whl/site.tar.xz
 o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'

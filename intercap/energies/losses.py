@@ -125,20 +125,28 @@ def _nearest_per_view(queries: torch.Tensor, query_mask: torch.Tensor, targets: 
 def _nearest_dense(queries: torch.Tensor, query_mask: torch.Tensor, targets: torch.Tensor,
                    target_mask: torch.Tensor, max_distance: float, max_entries: int = 1 << 26) -> torch.Tensor:
     """`_nearest_per_view` by the dense distance matrix, in chunks of frames of at most
-    `max_entries` (query, target) pairs; exact distances (no matrix-product shortcut), so ties
-    and the `max_distance` bound fall as the k-d tree's do."""
+    `max_entries` (query, target) pairs. The squared distances up to each query's own |q|^2,
+    |t|^2 - 2 q.t, are one batched matrix product (torch.cdist's exact mode runs a block per
+    distance on a GPU: it took 24 s of the H200's 132 s bench); coordinates are centred per frame
+    and view first, so fp32 rounding (about 1e-7 m^2) decides only near-exact ties, and the
+    chosen target's exact distance is what `max_distance` bounds."""
     B, C, Q, _ = queries.shape
     T = targets.shape[2]
     nearest = torch.full((B, C, Q), -1, dtype=torch.long, device=queries.device)
     step = max(1, max_entries // max(C * Q * T, 1))
     for a in range(0, B, step):
-        q, t = queries[a:a + step].detach(), targets[a:a + step].detach()
+        q_mask, t_mask = query_mask[a:a + step], target_mask[a:a + step]
+        q = torch.where(q_mask[..., None], queries[a:a + step].detach(), 0)
+        t = torch.where(t_mask[..., None], targets[a:a + step].detach(), 0)
         n = q.shape[0]
-        distance = torch.cdist(q.reshape(n * C, Q, 3), t.reshape(n * C, T, 3),
-                               compute_mode="donot_use_mm_for_euclid_dist").view(n, C, Q, T)
-        distance = distance.masked_fill(~target_mask[a:a + step, :, None, :], torch.inf)
-        best, index = distance.min(-1)
-        keep = query_mask[a:a + step] & (best <= max_distance) & torch.isfinite(best)
+        centre = q.sum(2, keepdim=True) / q_mask.sum(2).clamp(min=1)[..., None, None]
+        q, t = q - centre, t - centre
+        far = torch.where(t_mask, (t * t).sum(-1), torch.inf)  # (n, C, T): unmasked targets out of reach
+        partial = torch.baddbmm(far.reshape(n * C, 1, T), q.reshape(n * C, Q, 3),
+                                t.reshape(n * C, T, 3).transpose(1, 2), alpha=-2.0)  # (nC, Q, T)
+        best, index = partial.view(n, C, Q, T).min(-1)
+        chosen = t.gather(2, index[..., None].expand(n, C, Q, 3))
+        keep = q_mask & torch.isfinite(best) & ((q - chosen).norm(dim=-1) <= max_distance)
         nearest[a:a + step] = torch.where(keep, index, -1)
     return nearest
 
@@ -166,32 +174,53 @@ class DepthPairs:
     frame: torch.Tensor  # (K,)
     point: torch.Tensor  # (3, K) the point, one row per coordinate
     normal: torch.Tensor  # (3, K) the vertex's unit normal
-    weight: torch.Tensor  # (K,) 1 / pairs of its (frame, view, half), times the half's weight
+    weight: torch.Tensor  # (K,) 1 / pairs of its (frame, view, half), times the half's weight (0: an empty slot)
     batch_size: int
 
+    def tensors(self) -> dict[str, torch.Tensor]:
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "batch_size"}
+
     def to(self, device) -> "DepthPairs":
-        return dataclasses.replace(self, **{f.name: getattr(self, f.name).to(device)
-                                            for f in dataclasses.fields(self) if f.name != "batch_size"})
+        return dataclasses.replace(self, **{name: t.to(device) for name, t in self.tensors().items()})
+
+    def assign(self, other: "DepthPairs") -> None:
+        """Take `other`'s pairs in place (a recorded CUDA graph reads these tensors); as many pairs
+        as `other` (`depth_pairs` with compact off: one per slot)."""
+        for name, t in self.tensors().items():
+            t.copy_(getattr(other, name))
 
 
 def depth_pairs(points: torch.Tensor, point_valid: torch.Tensor, normals: torch.Tensor, nearest: torch.Tensor,
-                nearest_to_vertices: torch.Tensor | None = None, model_to_data: float = 1.0) -> DepthPairs:
+                nearest_to_vertices: torch.Tensor | None = None, model_to_data: float = 1.0,
+                compact: bool | None = None) -> DepthPairs:
     """`DepthPairs` from the points (B, C, P, 3) and their mask, the fitting vertices' normals
     (B, N, 3), `nearest` (B, C, P) from `nearest_visible_vertices` and `nearest_to_vertices`
     (B, C, N) from `nearest_points` (None: the model-to-data half is off), that half weighted
-    `model_to_data`. Each half is a mean per view over its pairs, as in PROX's E_D."""
+    `model_to_data`. Each half is a mean per view over its pairs, as in PROX's E_D.
+
+    `compact` (default: on the CPU) lists the pairs that exist only; otherwise every (frame, view,
+    point) and (frame, view, vertex) slot is a pair, those without a partner weighted 0: a GPU
+    then neither waits for `nonzero` nor sees the count change between refreshes (a CUDA graph
+    of the energy reads the pairs in place, `DepthPairs.assign`)."""
     B, N = normals.shape[:2]
+    if compact is None:
+        compact = points.device.type == "cpu"
 
     def half(mask, vertex_of, point_of, weight):
-        b, c, i = torch.nonzero(mask, as_tuple=True)
         count = mask.sum(-1).clamp(min=1).to(points.dtype)  # (B, C) pairs per view
-        return b * N + vertex_of(b, c, i), b, point_of(b, c, i), weight / count[b, c]
+        if compact:
+            b, c, i = torch.nonzero(mask, as_tuple=True)
+            return b * N + vertex_of(b, c, i), b, point_of(b, c, i), weight / count[b, c]
+        b, c, i = (x.reshape(-1) for x in torch.meshgrid(*(torch.arange(n, device=mask.device) for n in mask.shape),
+                                                          indexing="ij"))
+        return (b * N + vertex_of(b, c, i).clamp(min=0), b, point_of(b, c, i),
+                (mask / count[..., None]).reshape(-1) * weight)
 
     halves = [half(point_valid & (nearest >= 0), lambda b, c, p: nearest[b, c, p],
                    lambda b, c, p: points[b, c, p], 1.0)]
     if nearest_to_vertices is not None and model_to_data > 0:
         halves.append(half(nearest_to_vertices >= 0, lambda b, c, n: n,
-                           lambda b, c, n: points[b, c, nearest_to_vertices[b, c, n]], model_to_data))
+                           lambda b, c, n: points[b, c, nearest_to_vertices[b, c, n].clamp(min=0)], model_to_data))
     vertex, frame, point, weight = (torch.cat(parts) for parts in zip(*halves))
     normal = normals.reshape(B * N, 3)[vertex]
     return DepthPairs(vertex, frame, point.t().contiguous(), normal.t().contiguous(), weight, B)

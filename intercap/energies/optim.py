@@ -7,16 +7,20 @@ entry below `gtol`, or `max_steps` is reached. A monitor callback sees every
 step (progress display, correspondence updates). `minimise_per_frame` runs the
 same loop for a batch of independent problems (the body's frames), one L-BFGS
 per frame in the same tensors. `AdamRows` is Adam for such batches (the object's
-pose fits), each row its own problem.
+pose fits), each row its own problem. On CUDA both can replay each evaluation (energy and
+gradients) from one recorded CUDA graph (`gradient_evaluator`).
 """
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
 import numpy as np
 import torch
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -25,6 +29,61 @@ class MinimiseResult:
     steps: int
     evaluations: int  # closure calls, line search included
     stopped: str  # "ftol", "gtol", "max_steps" or "nonfinite"
+
+
+_graph_failures: list[str] = []  # recordings that failed in this process (the first is logged as a warning)
+
+
+def gradient_evaluator(variables: list[torch.Tensor], energy_fn: Callable[[], torch.Tensor],
+                       graph: bool = False) -> Callable[[], tuple[torch.Tensor, list[torch.Tensor]]]:
+    """A function returning `energy_fn()` (detached) and its sum's gradients for `variables` at
+    their current values.
+
+    With `graph` on CUDA, the first call runs eagerly and records the evaluation as a CUDA graph;
+    later calls replay it: one launch for the thousands of small kernels a fitting step's
+    forward and backward issue (a GPU's time per step is their launches, ~28 us each). The graph
+    reads the variables and whatever else `energy_fn` reads where they were when it was recorded,
+    so the caller changes those in place only (`copy_`), and `energy_fn` must not wait on the GPU
+    (no `.item()`, `nonzero`, boolean indexing; tests/energies/test_optim.py checks the body's).
+    A recording that fails is logged and the evaluation stays eager."""
+
+    def eager() -> tuple[torch.Tensor, list[torch.Tensor]]:
+        with torch.enable_grad():
+            energy = energy_fn()
+            grads = torch.autograd.grad(energy.sum(), variables, allow_unused=True)
+        return energy.detach(), [torch.zeros_like(v) if g is None else g for v, g in zip(variables, grads)]
+
+    if not graph or not variables[0].is_cuda:
+        return eager
+    recorded = {}
+
+    def replay() -> tuple[torch.Tensor, list[torch.Tensor]]:
+        if "graph" not in recorded:
+            side = torch.cuda.Stream()  # warm-up on a side stream, as torch.cuda.graph asks
+            side.wait_stream(torch.cuda.current_stream())
+            with torch.cuda.stream(side):
+                first = eager()
+            torch.cuda.current_stream().wait_stream(side)
+            stream = torch.cuda.current_stream()
+            try:
+                recorded["graph"] = torch.cuda.CUDAGraph()
+                with torch.cuda.graph(recorded["graph"], capture_error_mode="thread_local"):
+                    recorded["outputs"] = eager()
+            except Exception as error:  # noqa: BLE001 - any failure to record leaves the eager path
+                torch.cuda.set_stream(stream)  # a failed capture does not restore it
+                torch.cuda.synchronize()
+                (log.debug if _graph_failures else log.warning)(
+                    "CUDA graph not recorded, evaluating eagerly: %s", str(error).strip().splitlines()[0])
+                _graph_failures.append(str(error))
+                recorded["graph"] = None
+            return first
+        if recorded["graph"] is None:
+            return eager()
+        recorded["graph"].replay()
+        energy, grads = recorded["outputs"]
+        return energy.clone(), [g.clone() for g in grads]
+
+    return replay
 
 
 def minimise(
@@ -36,9 +95,12 @@ def minimise(
     gtol: float = 1e-7,
     history_size: int = 20,
     monitor: Callable[[int, float], None] | None = None,
+    graph: bool = False,
 ) -> MinimiseResult:
-    """Minimise the scalar `energy_fn()` over `variables` (leaf tensors, requires_grad set here)."""
+    """Minimise the scalar `energy_fn()` over `variables` (leaf tensors, requires_grad set here);
+    `graph`: evaluations replay a CUDA graph (`gradient_evaluator`)."""
     variables = [v.requires_grad_(True) for v in variables]
+    evaluate = gradient_evaluator(variables, energy_fn, graph)
     optimiser = torch.optim.LBFGS(
         variables, lr=1.0, max_iter=inner_iterations, history_size=history_size,
         line_search_fn="strong_wolfe", tolerance_grad=gtol, tolerance_change=1e-12,
@@ -48,9 +110,9 @@ def minimise(
     def closure():
         nonlocal evaluations
         evaluations += 1
-        optimiser.zero_grad(set_to_none=False)
-        energy = energy_fn()
-        energy.backward()
+        energy, grads = evaluate()
+        for v, g in zip(variables, grads):
+            v.grad = g
         return energy
 
     previous = math.inf
@@ -86,6 +148,7 @@ def minimise_per_frame(
     history_size: int = 20,
     max_line_search: int = 1,
     monitor: Callable[[int, float], None] | None = None,
+    graph: bool = False,
 ) -> MinimiseResult:
     """`minimise` for B independent problems at once: every variable's first dimension is the frame
     and `energy_fn()` returns each frame's energy (B,), which depends on that frame's rows only.
@@ -99,8 +162,9 @@ def minimise_per_frame(
     interpolation, per frame, `max_line_search` trials per iteration: with one, every iteration
     costs one evaluation, and a frame whose trial failed stays and tries the shorter step at the
     next. A frame whose step-start energy falls by no more than `ftol` between steps, or whose
-    largest gradient entry is below `gtol`, stops moving."""
+    largest gradient entry is below `gtol`, stops moving. `graph`: as `minimise`'s."""
     variables = [v.requires_grad_(True) for v in variables]
+    evaluate_here = gradient_evaluator(variables, energy_fn, graph)
     B = int(variables[0].shape[0])
     sizes = [v[0].numel() for v in variables]
     x = torch.cat([v.detach().reshape(B, -1) for v in variables], 1)
@@ -116,12 +180,8 @@ def minimise_per_frame(
         nonlocal evaluations
         evaluations += 1
         place(point)
-        with torch.enable_grad():
-            f = energy_fn()
-            grads = torch.autograd.grad(f.sum(), variables, allow_unused=True)
-        g = torch.cat([torch.zeros_like(v).reshape(B, -1) if d is None else d.reshape(B, -1)
-                       for v, d in zip(variables, grads)], 1)
-        return f.detach(), g
+        f, grads = evaluate_here()
+        return f, torch.cat([d.reshape(B, -1) for d in grads], 1)
 
     history: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (s, y, 1 / s.y or 0), oldest first
     scale = torch.full((B,), math.nan, dtype=x.dtype, device=x.device)  # s.y / y.y of the newest good pair

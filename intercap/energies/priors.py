@@ -461,6 +461,24 @@ def _anatomy_like(t: torch.Tensor) -> Anatomy:
     return load_anatomy(t.device, t.dtype)
 
 
+@lru_cache(maxsize=None)
+def device_constant(values: tuple, device: torch.device, dtype: torch.dtype) -> torch.Tensor:
+    """A small constant tensor, made once per device: a fit's evaluations must not copy from the
+    host each time (a GPU waits for it, and a recorded CUDA graph cannot hold it)."""
+    return torch.tensor(values, device=device, dtype=dtype)
+
+
+def _constant_like(values, t: torch.Tensor) -> torch.Tensor:
+    return device_constant(tuple(values), t.device, t.dtype)
+
+
+@lru_cache(maxsize=None)
+def _limit_rows(joints: tuple[str, ...], device: torch.device) -> torch.Tensor:
+    """The rows of `joint_limit_excess` that belong to `joints`, as indices on `device`."""
+    rows = [i for i, j in enumerate(_shipped_anatomy().row_joints) if j in joints]
+    return torch.tensor(rows, dtype=torch.long, device=device)
+
+
 # ---------------------------------------------------------------------------
 # Body joint angles and limits
 # ---------------------------------------------------------------------------
@@ -471,8 +489,8 @@ def composed_quaternions(body_pose: torch.Tensor, bones: torch.Tensor, mirror: t
     Rows whose `mirror` (R, 3) is MIRROR (right side) compose mirrored rotations, i.e. read
     in the left side's convention."""
     B, n = body_pose.shape[:2]
-    both = torch.cat([body_pose, body_pose * body_pose.new_tensor(MIRROR)], 1)  # (B, 2n, 3)
-    identity = body_pose.new_tensor([0.0, 0.0, 0.0, 1.0]).expand(B, 1, 4)
+    both = torch.cat([body_pose, body_pose * _constant_like(MIRROR, body_pose)], 1)  # (B, 2n, 3)
+    identity = _constant_like((0.0, 0.0, 0.0, 1.0), body_pose).expand(B, 1, 4)
     q = torch.cat([roma.rotvec_to_unitquat(both), identity], 1)  # (B, 2n + 1, 4)
     right = (mirror[:, 1:2] < 0).long() * n  # (R, 1) offset into the mirrored half
     index = torch.where(bones >= 0, bones + right, 2 * n)  # (R, K): a pad composes the identity (exactly)
@@ -524,9 +542,7 @@ def joint_limit_penalty(body_pose: torch.Tensor, joints: tuple[str, ...] | None 
     if excess is None:
         excess = joint_limit_excess(body_pose)
     if joints is not None:
-        a = _anatomy_like(body_pose)
-        keep = torch.tensor([j in joints for j in a.row_joints], device=body_pose.device)
-        return (excess[:, keep] ** 2).sum((1, 2))
+        return (excess.index_select(1, _limit_rows(tuple(joints), body_pose.device)) ** 2).sum((1, 2))
     swing = second_bone_swing(body_pose)
     second = torch.relu(swing.abs() - math.radians(SECOND_BONE_SWING)) ** 2
     return (excess**2).sum((1, 2)) + second.sum((1, 2))
@@ -574,7 +590,7 @@ def hand_angles(hand_pose: torch.Tensor, side: str) -> torch.Tensor:
         raise ValueError(f"side must be 'L' or 'R', got {side!r}")
     a = _anatomy_like(hand_pose)
     if side in ("R", "right"):
-        hand_pose = hand_pose * hand_pose.new_tensor(MIRROR)
+        hand_pose = hand_pose * _constant_like(MIRROR, hand_pose)
     q = roma.rotvec_to_unitquat(hand_pose)
     return swing_twist_angles(in_frame(q, a.hand_frames)) * a.hand_signs
 
@@ -606,7 +622,7 @@ def hand_pose_prior(hand_pose: torch.Tensor, side: str, coupling_weight: float =
 def hands_pose_prior(left_hand_pose: torch.Tensor, right_hand_pose: torch.Tensor) -> torch.Tensor:
     """(B,) `hand_pose_prior` of both hands, as one batch: the right hand mirrored into the left's
     convention (as `hand_angles` does), so the chain of small operations runs once, not twice."""
-    both = torch.cat([left_hand_pose, right_hand_pose * right_hand_pose.new_tensor(MIRROR)])
+    both = torch.cat([left_hand_pose, right_hand_pose * _constant_like(MIRROR, right_hand_pose)])
     return hand_pose_prior(both, "L").view(2, -1).sum(0)
 
 

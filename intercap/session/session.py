@@ -46,6 +46,22 @@ from intercap.session.problems import Problem, ProblemList, SessionError, format
 IO_WORKERS = max(1, min(8, (os.cpu_count() or 2) * 2))
 
 
+def in_threads(fn, items, threads: int | None = None) -> list:
+    """`[fn(x) for x in items]`, in `threads` threads (default: the process's share of the cores,
+    torch's thread count, at most IO_WORKERS): cv2 decodes images without the GIL, so a batch's
+    frames read side by side where the cores are free (a GPU run's one process; on 2 cores with 2
+    worker processes each reads alone). Each item runs whole in one thread (a frame's views and
+    its seeded picks keep their order)."""
+    import torch
+
+    items = list(items)
+    threads = min(IO_WORKERS, len(items), threads or torch.get_num_threads())
+    if threads <= 1:
+        return [fn(x) for x in items]
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        return list(pool.map(fn, items))
+
+
 class Session:
     """A loaded capture session; read frames with the read_* methods (None = dropped frame)."""
 
@@ -223,13 +239,7 @@ class Session:
             if depth is not None:
                 out[t, c] = depth
 
-        jobs = [(t, c) for t in range(len(ids)) for c in range(self.num_cameras)]
-        if len(jobs) <= 4:
-            for job in jobs:
-                fill(job)
-        else:
-            with ThreadPoolExecutor(max_workers=IO_WORKERS) as pool:  # cv2 decodes without the GIL
-                list(pool.map(fill, jobs))
+        in_threads(fill, [(t, c) for t in range(len(ids)) for c in range(self.num_cameras)], IO_WORKERS)
         return out
 
     def availability(self) -> dict[str, np.ndarray]:

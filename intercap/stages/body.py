@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,6 +52,7 @@ from intercap.geometry.ground import up_hint_from_cameras
 from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
 from intercap.parallel import Chunk, lockstep, on_gpu, run_chunks
 from intercap.parallel import chunk_groups as parallel_chunk_groups
+from intercap.session.session import in_threads
 
 log = logging.getLogger(__name__)
 
@@ -159,6 +161,7 @@ class PersonPoints:
         self.rays = [pixel_rays(cameras.select([c]), cam.height, cam.width)[0].cpu()
                      for c, cam in enumerate(session.cameras)]
         self._background = None
+        self._lock = threading.Lock()
         self._object = None
         poses = per_frame_result(out_dir, "object", "object_poses.npz")
         if derives and session.object is not None and poses.exists():
@@ -171,12 +174,13 @@ class PersonPoints:
         from intercap.geometry.segmentation import background_depth
         from intercap.stages.prepare import spread_frames
 
-        if self._background is None:
-            ids = spread_frames(self.session.frame_ids, 30)
-            stacks = [[self.session.read_depth(c, int(f)) for f in ids] for c in range(self.session.num_cameras)]
-            self._background = [
-                background_depth(np.stack([d for d in stack if d is not None])) for stack in stacks
-            ]
+        with self._lock:  # `batch`'s threads ask at once
+            if self._background is None:
+                ids = spread_frames(self.session.frame_ids, 30)
+                stacks = [[self.session.read_depth(c, int(f)) for f in ids] for c in range(self.session.num_cameras)]
+                self._background = [
+                    background_depth(np.stack([d for d in stack if d is not None])) for stack in stacks
+                ]
         return self._background
 
     def object_mask(self, c: int, frame_id: int, shape) -> np.ndarray:
@@ -226,13 +230,15 @@ class PersonPoints:
         points = np.zeros((B, C, P, 3), np.float32)
         valid = np.zeros((B, C, P), bool)
         T = self.cameras.T_world_from_cam.cpu().numpy()
-        for b, f in enumerate(frame_ids):
-            rng = np.random.default_rng([self.cfg.seed, int(f)])
+
+        def pick_frame(b: int) -> None:  # the frames in IO threads, each with its own seeded stream
+            f = int(frame_ids[b])
+            rng = np.random.default_rng([self.cfg.seed, f])
             for c in range(C):
-                depth = self.session.read_depth(c, int(f))
+                depth = self.session.read_depth(c, f)
                 if depth is None:
                     continue
-                mask = self.mask(c, int(f), depth, keypoints[b, c])
+                mask = self.mask(c, f, depth, keypoints[b, c])
                 if mask is None:
                     continue
                 pick = np.flatnonzero((mask & (depth > 0.2)).reshape(-1))
@@ -244,6 +250,8 @@ class PersonPoints:
                 cam = np.concatenate([xy * z[:, None], z[:, None]], 1)
                 points[b, c, :len(pick)] = cam @ T[c, :3, :3].T + T[c, :3, 3]
                 valid[b, c, :len(pick)] = True
+
+        in_threads(pick_frame, range(B))
         return torch.from_numpy(points), torch.from_numpy(valid)
 
 
@@ -254,7 +262,8 @@ def keypoint_views(keypoints: torch.Tensor, cfg) -> torch.Tensor:
 
 def foot_views(keypoints: torch.Tensor, min_keypoints: int = 2) -> torch.Tensor:
     """(B,) per frame, the views with >= `min_keypoints` confident foot keypoints (ankles, heels, toes)."""
-    return ((keypoints[:, :, FOOT_KEYPOINTS, 2] > 0).sum(-1) >= min_keypoints).sum(-1)
+    feet = priors.device_constant(tuple(FOOT_KEYPOINTS), keypoints.device, torch.long)  # made once per device
+    return ((keypoints[..., 2].index_select(2, feet) > 0).sum(-1) >= min_keypoints).sum(-1)
 
 
 def unseen_feet_support(vertices: torch.Tensor, keypoints: torch.Tensor, ground_point: torch.Tensor,
@@ -763,16 +772,22 @@ class BodyFitter:
                                           getattr(self.cfg, phase.rho_key), out=out, rest=rest)
                 return sum(self.weight(k) * v for k, v in terms.items())
 
+            graph = self.cfg.cuda_graphs and device.type == "cuda"  # each phase's evaluations: one recorded graph
+
             def refresh(step, value):
                 if "depth" in phase.terms:
-                    state["matches"] = self.correspondences(current(), obs)
+                    matches = self.correspondences(current(), obs)
+                    if graph:  # in place: the graph reads them there
+                        state["matches"].assign(matches)
+                    else:
+                        state["matches"] = matches
                 if monitor is not None:
                     monitor(phase.name, step, value)
 
             if "depth" in phase.terms:
                 state["matches"] = self.correspondences(current(), obs)
             budget = dict(max_steps=getattr(self.cfg, phase.steps_key), inner_iterations=self.cfg.inner_iterations,
-                          ftol=self.cfg.ftol, monitor=refresh)
+                          ftol=self.cfg.ftol, monitor=refresh, graph=graph)
             if self.cfg.per_frame_lbfgs and ("shape" not in leaves or groups == B):  # the frames do not interact
                 result = minimise_per_frame(list(leaves.values()), frame_energies, **budget)
             else:  # frames sharing a phenotype (or `per_frame_lbfgs` off): one problem

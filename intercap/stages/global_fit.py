@@ -31,6 +31,7 @@ OUT/body/ and OUT/object/.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 import logging
 import time
@@ -49,6 +50,7 @@ from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras
 from intercap.io.files import per_frame_result, publish, save_npz, write_json
 from intercap.parallel import Chunk, frame_chunks, on_gpu, run_chunks, shutdown, worker_count
+from intercap.session.session import in_threads
 from intercap.stages.body import (
     PHASES,
     BodyFitter,
@@ -250,6 +252,13 @@ class ObjectShape:
         self.grasp_points = torch.from_numpy(vertices[ids])  # (G, 3)
         self.centroid = torch.from_numpy(vertices.mean(0))
 
+    def on(self, device) -> "ObjectShape":
+        """A copy with its tensors on `device` (the fitter's: it then copies nothing per evaluation)."""
+        moved = copy.copy(self)
+        for name in ("sdf", "lo", "hi", "samples", "grasp_points", "centroid"):
+            setattr(moved, name, getattr(self, name).to(device))
+        return moved
+
     def signed_distance(self, points: torch.Tensor) -> torch.Tensor:
         """(..., 3) points in object coordinates -> (...) metres, positive outside. Beyond the grid:
         the border value plus the distance to the grid box (an overestimate that keeps its sign)."""
@@ -293,11 +302,12 @@ class GlobalFitter:
     def __init__(self, model, cameras: Cameras, bcfg, gcfg, shape: ObjectShape, ground, fps: float):
         self.model, self.bcfg, self.gcfg = model, bcfg, gcfg
         self.body = BodyFitter(model, cameras, bcfg)
-        self.shape = shape
+        self.shape = shape.on(self.body.subset.device)
         self.fps = float(fps)
-        self.ground = None if ground is None else (torch.as_tensor(ground.point, dtype=torch.float32),
-                                                   torch.as_tensor(ground.normal, dtype=torch.float32))
         subset = self.body.subset
+        self.ground = None if ground is None else (
+            torch.as_tensor(ground.point, dtype=torch.float32, device=subset.device),
+            torch.as_tensor(ground.normal, dtype=torch.float32, device=subset.device))
         regions = [model.contact_regions[h] for h in HANDS]
         feet = [model.contact_regions[f] for f in ("left_foot", "right_foot") if f in model.contact_regions]
         extra = [torch.as_tensor(r) for r in regions + feet]
@@ -330,7 +340,7 @@ class GlobalFitter:
 
     def from_object(self, points: torch.Tensor, R: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
         """Object coordinates (M, 3) -> world (W, M, 3)."""
-        points = points.to(R.device)  # the object's samples live on the CPU
+        points = points.to(R.device)  # on the fit's device already where `ObjectShape.to` moved them
         return (points - self.shape.centroid.to(points)) @ R.transpose(1, 2) + centre[:, None]
 
     # -- energy ---------------------------------------------------------------------------
@@ -355,13 +365,10 @@ class GlobalFitter:
         contact = torch.zeros_like(terms["interpenetration"])
         grasp = torch.zeros_like(contact)
         grasp_world = self.from_object(self.shape.grasp_points, R, centre)
-        for h, slots in enumerate(self.hand_slots):
-            touching = data.grasping[:, h]
-            active = torch.nonzero(touching > 0)[:, 0]  # E_C' measures all pairs: only where the hand grasps
-            if len(active):
-                contact = contact + losses.contact_chamfer(body_in_object[:, slots], touching, g.contact_vertices)
-                grasp = grasp.index_add(0, active, losses.hand_contact(
-                    vertices[active][:, slots], grasp_world[active], touching[active], g.contact_vertices))
+        for h, slots in enumerate(self.hand_slots):  # every frame, weighted by whether the hand grasps
+            touching = data.grasping[:, h]  # (a search for the grasping frames would make a GPU wait)
+            contact = contact + losses.contact_chamfer(body_in_object[:, slots], touching, g.contact_vertices)
+            grasp = grasp + losses.hand_contact(vertices[:, slots], grasp_world, touching, g.contact_vertices)
         terms["contact"], terms["hand_contact"] = contact, grasp
         if self.ground is not None:
             point, normal = (x.to(vertices) for x in self.ground)
@@ -369,7 +376,7 @@ class GlobalFitter:
                                + losses.ground_penetration(object_world, point, normal))
             if self.bcfg.w_ground_support > 0:  # E_S as in the body stage
                 terms["body_ground_support"] = unseen_feet_support(vertices, data.obs.keypoints, point, normal)
-        if self.gravity is not None and data.flight is not None and bool((data.flight >= 0).any()):
+        if self.gravity is not None and data.flight is not None:
             times = torch.arange(len(centre), dtype=centre.dtype, device=centre.device) / self.fps
             terms["flight"] = losses.flight_parabola(centre, data.flight, times, self.gravity.to(centre))
         if len(vertices) >= 3:
@@ -421,16 +428,24 @@ class GlobalFitter:
             terms = self.energy_terms(body, R, centre, data, state["matches"], rest)
             return sum(self.weight(k) * v.sum() for k, v in terms.items())
 
+        # evaluations replay a recorded CUDA graph (`gradient_evaluator`), but not with a free flight in the
+        # window (its term picks each episode's frames on the CPU)
+        graph = g.cuda_graphs and R0.is_cuda and (self.gravity is None or data.flight is None)
+
         def refresh(step, value):
             if step % max(1, g.correspondence_every) == 0:
-                state["matches"] = self.body.correspondences(current()[0].detach(), data.obs)
+                matches = self.body.correspondences(current()[0].detach(), data.obs)
+                if graph:  # in place: the graph reads them there
+                    state["matches"].assign(matches)
+                else:
+                    state["matches"] = matches
             if monitor is not None:
                 monitor(step, value)
 
         with torch.no_grad():
             before = {k: float(v.sum()) for k, v in self.energy_terms(*current(), data, state["matches"], rest).items()}
         result = minimise(list(leaves.values()), energy, max_steps=g.steps, inner_iterations=g.inner_iterations,
-                          ftol=g.ftol, monitor=refresh)
+                          ftol=g.ftol, monitor=refresh, graph=graph)
         with torch.no_grad():
             body, R, centre = (x.detach() for x in current())
             after = {k: float(v.sum()) for k, v in self.energy_terms(body, R, centre, data, state["matches"], rest).items()}
@@ -449,7 +464,7 @@ class WindowData:
     object_reference: torch.Tensor  # (W, M, 3) the object's samples where the tracker put them
     object_confidence: torch.Tensor  # (W,)
     grasping: torch.Tensor  # (W, 2) float
-    flight: torch.Tensor | None = None  # (W,) long: free-flight episode id per frame, -1 outside (GraviCap)
+    flight: torch.Tensor | None = None  # (W,) long: free-flight episode id per frame, -1 outside (GraviCap); None: no flight
 
 
 class Observations:
@@ -485,10 +500,13 @@ class Observations:
         P = self.cfg.global_.object_points_per_view * self.session.num_cameras
         cloud = np.zeros((len(frames), P, 3), np.float32)
         cloud_valid = np.zeros((len(frames), P), bool)
-        for b, i in enumerate(frames):
+        def read_frame(b: int) -> None:  # in IO threads
+            i = frames[b]
             pts = self.object_points(int(ids[b]), per_frame.R[i], per_frame.t[i], bool(per_frame.object_valid[i]),
                                      self.cfg.global_.seed)
             cloud[b, :len(pts)], cloud_valid[b, :len(pts)] = pts, True
+
+        in_threads(read_frame, range(len(frames)))
         R = torch.as_tensor(per_frame.R[frames], dtype=torch.float32)
         t = torch.as_tensor(per_frame.t[frames], dtype=torch.float32)
         reference = (shape.samples @ R.transpose(1, 2)) + t[:, None]
@@ -560,7 +578,7 @@ class GlobalProblem:
         self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, g, self.shape, ground, session.fps)
         self.flight = flight = free_flight(per_frame, self.shape, ground, session.fps, g)
         if flight["episodes"].size and g.w_flight > 0:
-            self.fitter.gravity = torch.as_tensor(-9.81 * flight["up"], dtype=torch.float32)
+            self.fitter.gravity = torch.as_tensor(-9.81 * flight["up"], dtype=torch.float32, device=cfg.run.device)
         if flight["figures"]["gravity_source"] == "flight":  # no floor in view: up from the object's free flight
             write_json(stage_dir / "gravity.json", {"up": flight["figures"]["gravity_up"], "source": "flight",
                                                     "gravity_mps2": (-9.81 * flight["up"]).tolist(),
@@ -606,7 +624,8 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
         tick = time.perf_counter()
         frames = np.arange(start, end)
         data = problem.observations.window(frames, per_frame, shape)
-        data.flight = torch.as_tensor(problem.flight["episode_of_frame"][frames], device=device)
+        episode = problem.flight["episode_of_frame"][frames]
+        data.flight = torch.as_tensor(episode, device=device) if (episode >= 0).any() else None
         body, R, centre, stats = problem.fitter.fit_window(fitted[start:end], R_all[start:end],
                                                            centre_all[start:end], fixed, data)
         keep = slice(fixed, commit - start)

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -201,23 +202,26 @@ class ObjectTracker:
         self.session_masks = cfg.use_session_masks  # the session's mask where a view and frame has one ...
         self.use_masks = cfg.use_session_masks and not session.missing("mask_object").any()  # ... or everywhere
         self.backgrounds = None
+        self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
 
     # -- observations ---------------------------------------------------------------
     def _background(self) -> list[np.ndarray]:
         """Depth background per camera over `background_frames` frames, the person's pixels left out."""
-        if self.backgrounds is None:
-            from intercap.stages.prepare import spread_frames
+        with self._lock:  # observations are read in threads (the global stage's windows)
+            if self.backgrounds is None:
+                from intercap.stages.prepare import spread_frames
 
-            frames = spread_frames(self.session.frame_ids, self.cfg.background_frames)
-            self.backgrounds = []
-            for c, (H, W) in enumerate(self.sizes):
-                stack = [self.session.read_depth(c, int(f)) for f in frames]
-                stack = np.stack([d if d is not None else np.zeros((H, W), np.float32) for d in stack])
-                people = [self.session.read_mask(c, int(f), "person") for f in frames]
-                ignore = np.stack([m if m is not None else np.zeros((H, W), bool) for m in people])
-                self.backgrounds.append(background_depth(stack, min_valid_fraction=self.cfg.background_valid_fraction,
-                                                         ignore=ignore))
+                frames = spread_frames(self.session.frame_ids, self.cfg.background_frames)
+                backgrounds = []
+                for c, (H, W) in enumerate(self.sizes):
+                    stack = [self.session.read_depth(c, int(f)) for f in frames]
+                    stack = np.stack([d if d is not None else np.zeros((H, W), np.float32) for d in stack])
+                    people = [self.session.read_mask(c, int(f), "person") for f in frames]
+                    ignore = np.stack([m if m is not None else np.zeros((H, W), bool) for m in people])
+                    backgrounds.append(background_depth(stack, min_valid_fraction=self.cfg.background_valid_fraction,
+                                                        ignore=ignore))
+                self.backgrounds = backgrounds
         return self.backgrounds
 
     def observe(self, frame_id: int, predicted, reach_m: float = 0.0) -> Observation:

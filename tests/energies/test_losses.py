@@ -79,12 +79,19 @@ def test_depth_pairs_give_the_dense_definition_of_e_d():
     dense = data_to_model + half_weight * robust_mean(matched - vertices[:, None], normals[:, None], to_points >= 0)
     dense_grad, = torch.autograd.grad(dense.sum(), vertices)
 
-    pairs = depth_pairs(points, valid, normals, nearest, to_points, half_weight)
-    assert len(pairs.vertex) == int((valid & (nearest >= 0)).sum() + (to_points >= 0).sum())
-    flat = depth_point_to_plane(vertices, pairs, scale, tangent_weight)
-    flat_grad, = torch.autograd.grad(flat.sum(), vertices)
-    assert torch.allclose(flat, dense, rtol=1e-5, atol=1e-9)
-    assert torch.allclose(flat_grad, dense_grad, rtol=1e-4, atol=1e-7)
+    for compact in (True, False):  # the pairs that exist (the CPU's), or a slot per point and vertex (a GPU's)
+        pairs = depth_pairs(points, valid, normals, nearest, to_points, half_weight, compact=compact)
+        used = int((valid & (nearest >= 0)).sum() + (to_points >= 0).sum())
+        assert len(pairs.vertex) == (used if compact else B * C * (P + N)) and int((pairs.weight > 0).sum()) == used
+        flat = depth_point_to_plane(vertices, pairs, scale, tangent_weight)
+        flat_grad, = torch.autograd.grad(flat.sum(), vertices)
+        assert torch.allclose(flat, dense, rtol=1e-5, atol=1e-9)
+        assert torch.allclose(flat_grad, dense_grad, rtol=1e-4, atol=1e-7)
+    # a refresh taken in place (what a recorded CUDA graph reads) is the new pairs' energy
+    others = depth_pairs(points, valid, normals, nearest.roll(1, 2), to_points.roll(1, 2), half_weight, compact=False)
+    pairs.assign(others)
+    assert torch.equal(depth_point_to_plane(vertices, pairs, scale), depth_point_to_plane(vertices, others, scale))
+    assert not torch.allclose(depth_point_to_plane(vertices, others, scale), dense)
 
 
 def test_hand_contact_equals_its_definition_with_gradients():

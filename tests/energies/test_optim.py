@@ -83,3 +83,17 @@ def test_adam_rows_is_adam_per_row():
         ((alone - target[1:]) ** 2).sum().backward()
         half.step()
     assert torch.allclose(rows[1], alone[0], atol=1e-6)
+
+
+def test_host_waits_sees_what_a_gpu_would_wait_for():
+    from host_waits import HostWaits
+
+    waits, mask = HostWaits(), torch.tensor([True, False, True])
+    with waits:
+        torch.ones(3).nonzero()
+        float(torch.ones(1).sum())
+        torch.ones(3) * torch.tensor([1.0, 2.0, 3.0])
+        torch.ones(3)[mask]
+        x = torch.zeros(3)
+        x[1] = 2.0  # a fill, no copy
+    assert waits.seen == ["nonzero", "_local_scalar_dense", "lift_fresh", "index"]

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from conftest import SAMPLE_SESSION, trimmed_copy
+from host_waits import watch_evaluations
 
 from intercap.body_models import BodyParams, load_body_model
 from intercap.config import load_config
@@ -190,6 +191,21 @@ def test_fit_recovers_a_perturbed_pose(model, sample):
         hands = model(fitted).keypoints[:, 25:67].numpy() - model(fitted).keypoints[:, [25] * 21 + [46] * 21].numpy()
     gt_hands = keypoints3d[frames, 25:67] - keypoints3d[frames][:, [25] * 21 + [46] * 21]
     assert 1000 * np.linalg.norm(hands - gt_hands, axis=-1).mean() < 20
+
+
+@pytest.mark.parametrize("shape_held", [True, False])
+def test_a_body_evaluation_never_waits_on_the_gpu(model, sample, monkeypatch, shape_held):
+    """Every phase's evaluation (forward and backward) after its first is recordable as a CUDA
+    graph (`gradient_evaluator`), whether the phenotype is held or fitted: it issues no operation
+    that waits on the GPU. The correspondence refresh between steps may."""
+    cameras, cfg, params, _, frames, obs = frames_0_and_2(sample)
+    fitter = body.BodyFitter(model, cameras, cfg)
+    if shape_held:
+        fitter.held_shape = params.shape[0].clone()
+    fitter.ground = (torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))  # E_G and E_S count too
+    waits, phases = watch_evaluations(monkeypatch)
+    fitter.fit(obs, params[frames])
+    assert len(phases) == 3 and all(len(calls) > 3 for calls in phases) and waits.seen == [], waits.seen
 
 
 def frame_2_fitter(model, sample) -> tuple[BodyParams, body.BodyObservations, body.BodyFitter]:

@@ -128,6 +128,27 @@ def test_contact_closes_a_3cm_gap_only_in_contact_frames(sample, model):
     assert stats["after"]["contact"] < 0.05 * stats["before"]["contact"]
 
 
+def test_a_window_evaluation_never_waits_on_the_gpu(sample, model, monkeypatch):
+    """Every evaluation of a window's fit after its first is recordable as a CUDA graph
+    (`gradient_evaluator`): it issues no operation that waits on the GPU."""
+    from host_waits import watch_evaluations
+
+    cfg = load_config(overrides=["global.steps=3"])
+    W, frame = 4, 16
+    body = BodyParams.from_numpy_dict({k: v[frame:frame + W] for k, v in gt_body().items()})
+    poses = np.load(GT / "object_poses.npz")
+    shape = ObjectShape(sample.object.load_mesh(), 40, sample.object.contact_vertices)
+    R = torch.as_tensor(poses["R"][frame:frame + W], dtype=torch.float32)
+    t = torch.as_tensor(poses["t"][frame:frame + W], dtype=torch.float32)
+    cameras = Cameras.from_infos(sample.cameras)
+    fitter = GlobalFitter(model, cameras, cfg.body, cfg.global_, shape, load_ground_from_gt(), sample.fps)
+    grasping = torch.tensor([[0, 1]] * W, dtype=torch.float32)
+    data = window_data(exact_keypoints(model, body, cameras), R, t, shape, grasping, len(cameras))
+    waits, evaluators = watch_evaluations(monkeypatch)
+    fitter.fit_window(body, R, t + R @ shape.centroid, 1, data)
+    assert len(evaluators) == 1 and len(evaluators[0]) > 3 and waits.seen == [], waits.seen
+
+
 def load_ground_from_gt():
     from intercap.geometry.ground import GroundPlane
 

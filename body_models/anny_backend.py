@@ -49,10 +49,35 @@ def is_hand_bone(label: str) -> bool:
     return label.startswith(("finger", "metacarpal"))
 
 
+ANNY_INTERPOLATION: list = []  # anny's own interpolation, once `build_anny` replaced it (the tests compare)
+
+
+def interpolation_weights(value: torch.Tensor, anchors: torch.Tensor, extrapolate: bool = False) -> torch.Tensor:
+    """anny's piecewise-linear phenotype weights, (B,) values between (n,) anchors -> (B, n): the
+    two anchors around each value weighted 1 - a and a (values outside the anchors clamped unless
+    `extrapolate`). Made on the anchors' device: anny's own (`linear_interpolation_coefficients`,
+    which `build_anny` replaces with this) indexes with a CPU `arange`, a copy from the host on every
+    GPU evaluation, which a recorded CUDA graph cannot hold. Values and gradients are anny's."""
+    if not extrapolate:
+        value = torch.where(value < anchors[0], anchors[0], value)
+        value = torch.where(value > anchors[-1], anchors[-1], value)
+    n = len(anchors)
+    upper = torch.searchsorted(anchors, value.contiguous(), side="left").clamp(1, n - 1)[:, None]
+    lower = upper - 1
+    alpha = ((value[:, None] - anchors[lower]) / (anchors[upper] - anchors[lower]))
+    weights = torch.zeros(len(value), n, dtype=anchors.dtype, device=anchors.device)
+    return weights.scatter(1, lower, 1.0 - alpha).scatter(1, upper, alpha)
+
+
 def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
     """Construct the anny model, building its cache under `cache_dir` the first time."""
     import anny
     import anny.paths
+    import anny.utils.interpolation
+
+    if anny.utils.interpolation.linear_interpolation_coefficients is not interpolation_weights:  # see there
+        ANNY_INTERPOLATION.append(anny.utils.interpolation.linear_interpolation_coefficients)
+        anny.utils.interpolation.linear_interpolation_coefficients = interpolation_weights
 
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)

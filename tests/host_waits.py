@@ -16,18 +16,48 @@ class HostWaits(TorchDispatchMode):
     WAITING = {"_local_scalar_dense", "nonzero", "masked_select", "unique_dim", "_unique2", "unique_consecutive",
                "equal", "is_nonzero", "bincount", "histc", "_linalg_check_errors", "repeat_interleave"}
 
+    # torch factories that, called without a device, make a CPU tensor on a GPU run: indexing a CUDA
+    # tensor with one copies it from the host (anny's interpolation did: `torch.arange(batch)`)
+    FACTORIES = ("arange", "zeros", "ones", "empty", "full", "eye", "linspace", "tensor", "as_tensor", "rand", "randn")
+
     def __init__(self):
         super().__init__()
         self.seen = []
+        self.host_scalars = {}  # id -> 0-dim tensor made from a Python number (host memory on a GPU run), kept
+        # alive so that its id is not reused
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         name = func.overloadpacket.__name__
         boolean_index = name in ("index", "index_put", "index_put_") and any(
             isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in (args[1] or ()))
-        from_host = name == "lift_fresh" and args[0].dim() > 0  # torch.tensor(list); a scalar written in place is a fill
-        if name in self.WAITING or boolean_index or from_host:
+        from_host = name == "lift_fresh" and args[0].dim() > 0  # torch.tensor(list), x.new_tensor(list)
+        # a number written into one element (`x[i, j] = 1.0`) is copied from the host; into several, filled
+        scalar_copied = name == "copy_" and id(args[1]) in self.host_scalars
+        if name in self.WAITING or boolean_index or from_host or scalar_copied:
             self.seen.append(name)
-        return func(*args, **(kwargs or {}))
+        out = func(*args, **(kwargs or {}))
+        if name == "lift_fresh" and args[0].dim() == 0:
+            self.host_scalars[id(out)] = out
+        return out
+
+    def __enter__(self):
+        self.factories = {name: getattr(torch, name) for name in self.FACTORIES}
+        for name, make in self.factories.items():
+            setattr(torch, name, self._watched_factory(name, make))
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        for name, make in self.factories.items():
+            setattr(torch, name, make)
+        return super().__exit__(*exc)
+
+    def _watched_factory(self, name, make):
+        def watched(*args, **kwargs):
+            keeps_device = name == "as_tensor" and isinstance(args[0], torch.Tensor)
+            if kwargs.get("device") is None and not keeps_device:
+                self.seen.append(f"torch.{name} without a device")
+            return make(*args, **kwargs)
+        return watched
 
 
 def watch_evaluations(monkeypatch) -> tuple[HostWaits, list[list]]:

@@ -124,3 +124,20 @@ def test_smplx_backend_with_user_files():
     params.right_hand_pose[1, :, 0] = 0.8
     moved = (model(params).keypoints[1] - out.keypoints[1]).norm(dim=-1)
     assert moved[RIGHT_HAND].max() > 0.01 and moved[LEFT_HAND].max() < 1e-6
+
+
+def test_phenotype_interpolation_is_annys_on_the_anchors_device(anny_model):
+    """anny's phenotype interpolation, replaced so that it makes nothing on the CPU for a GPU run
+    (`interpolation_weights`): the same values and gradients as anny's own, in and outside the
+    anchors, on the anchors and with extrapolation."""
+    from intercap.body_models.anny_backend import ANNY_INTERPOLATION, interpolation_weights
+
+    assert len(ANNY_INTERPOLATION) == 1
+    g = torch.Generator().manual_seed(0)
+    for anchors in (torch.tensor([0.0, 0.1875, 0.5, 1.0]), torch.linspace(0, 1, 3), torch.linspace(0, 1, 2)):
+        for extrapolate in (False, True):
+            value = torch.cat([torch.rand(40, generator=g) * 1.4 - 0.2, anchors]).requires_grad_(True)
+            ours, annys = interpolation_weights(value, anchors, extrapolate), ANNY_INTERPOLATION[0](value, anchors, extrapolate)
+            assert torch.equal(ours, annys)
+            weight = torch.randn(ours.shape, generator=g)
+            assert torch.equal(*(torch.autograd.grad((w * weight).sum(), value)[0] for w in (ours, annys)))

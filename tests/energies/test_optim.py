@@ -88,12 +88,15 @@ def test_adam_rows_is_adam_per_row():
 def test_host_waits_sees_what_a_gpu_would_wait_for():
     from host_waits import HostWaits
 
-    waits, mask = HostWaits(), torch.tensor([True, False, True])
+    waits, mask, ones, x = HostWaits(), torch.tensor([True, False, True]), torch.ones(3), torch.zeros(3, 2)
     with waits:
-        torch.ones(3).nonzero()
-        float(torch.ones(1).sum())
-        torch.ones(3) * torch.tensor([1.0, 2.0, 3.0])
-        torch.ones(3)[mask]
-        x = torch.zeros(3)
+        ones.nonzero()
+        float(ones.sum())
+        ones * torch.tensor([1.0, 2.0, 3.0], device=ones.device)  # from a list: a copy from the host
+        ones[mask]
         x[1] = 2.0  # a fill, no copy
-    assert waits.seen == ["nonzero", "_local_scalar_dense", "lift_fresh", "index"]
+        x[1, 0] = 3.0  # one element: a copy from the host on a GPU
+        x[torch.arange(2)] = 1.0  # a CPU index on a GPU run
+        torch.zeros(2, device=x.device)
+    assert waits.seen == ["nonzero", "_local_scalar_dense", "lift_fresh", "index", "copy_",
+                          "torch.arange without a device"], waits.seen

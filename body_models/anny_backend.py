@@ -64,7 +64,7 @@ def interpolation_weights(value: torch.Tensor, anchors: torch.Tensor, extrapolat
     n = len(anchors)
     upper = torch.searchsorted(anchors, value.contiguous(), side="left").clamp(1, n - 1)[:, None]
     lower = upper - 1
-    alpha = ((value[:, None] - anchors[lower]) / (anchors[upper] - anchors[lower]))
+    alpha = (value[:, None] - anchors[lower]) / (anchors[upper] - anchors[lower])
     weights = torch.zeros(len(value), n, dtype=anchors.dtype, device=anchors.device)
     return weights.scatter(1, lower, 1.0 - alpha).scatter(1, upper, alpha)
 
@@ -75,8 +75,9 @@ def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
     import anny.paths
     import anny.utils.interpolation
 
-    if anny.utils.interpolation.linear_interpolation_coefficients is not interpolation_weights:  # see there
-        ANNY_INTERPOLATION.append(anny.utils.interpolation.linear_interpolation_coefficients)
+    original = anny.utils.interpolation.linear_interpolation_coefficients
+    if original.__module__.startswith("anny"):  # not replaced yet (see `interpolation_weights`)
+        ANNY_INTERPOLATION.append(original)
         anny.utils.interpolation.linear_interpolation_coefficients = interpolation_weights
 
     if cache_dir is not None:

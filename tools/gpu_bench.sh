@@ -14,7 +14,9 @@ export LD_LIBRARY_PATH=$(dirname "$(find /tmp/usb -name libusb-1.0.so.0 | head -
 mkdir -p /tmp/site && tar xJf .whl/site.tar.xz -C /tmp/site || exit 1
 # body_models/ and calib/ install inside the package (setup.cfg's package_dir); here they are linked
 ln -sfn ../body_models intercap/body_models; ln -sfn ../calib intercap/calib
-[ -f data_samples/sample/calibration.json ] || { rm -rf data_samples/sample; mkdir -p data_samples; cp -r .whl/sample data_samples/sample; }  # 12 frames
+if [ ! -f data_samples/sample/calibration.json ]; then  # the sample's first 12 frames
+    rm -rf data_samples/sample; mkdir -p data_samples; cp -r .whl/sample data_samples/sample
+fi
 export PYGLET_HEADLESS=true PYTHONPATH=/tmp/site:$PWD PYOPENGL_PLATFORM=egl PYTHONUNBUFFERED=1
 nvidia-smi -L; nproc
 python3 -c "import torch, intercap.body_models.anny_backend, open3d, pyrender, roma; print(torch.__version__, torch.cuda.is_available())" || exit 1

@@ -189,6 +189,14 @@ class DepthPairs:
         for name, t in self.tensors().items():
             t.copy_(getattr(other, name))
 
+    def refreshed(self, new: "DepthPairs", in_place: bool) -> "DepthPairs":
+        """The pairs after a refresh: `new`, or these holding `new`'s values (`assign`) where a
+        recorded graph reads them (`in_place`)."""
+        if not in_place:
+            return new
+        self.assign(new)
+        return self
+
 
 def depth_pairs(points: torch.Tensor, point_valid: torch.Tensor, normals: torch.Tensor, nearest: torch.Tensor,
                 nearest_to_vertices: torch.Tensor | None = None, model_to_data: float = 1.0,

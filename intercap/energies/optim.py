@@ -31,7 +31,7 @@ class MinimiseResult:
     stopped: str  # "ftol", "gtol", "max_steps" or "nonfinite"
 
 
-_graph_failures: list[str] = []  # recordings that failed in this process (the first is logged as a warning)
+_graph_failures: list[str] = []  # why recordings failed in this process (the first is logged as a warning)
 
 
 def gradient_evaluator(variables: list[torch.Tensor], energy_fn: Callable[[], torch.Tensor],
@@ -44,8 +44,9 @@ def gradient_evaluator(variables: list[torch.Tensor], energy_fn: Callable[[], to
     forward and backward issue (a GPU's time per step is their launches, ~28 us each). The graph
     reads the variables and whatever else `energy_fn` reads where they were when it was recorded,
     so the caller changes those in place only (`copy_`), and `energy_fn` must not wait on the GPU
-    (no `.item()`, `nonzero`, boolean indexing; tests/energies/test_optim.py checks the body's).
-    A recording that fails is logged and the evaluation stays eager."""
+    (no `.item()`, `nonzero`, boolean indexing, nothing made on or copied from the CPU;
+    tests/host_waits.py checks the body's and the global stage's on the CPU). A recording that
+    fails is logged (the process's first failure as a warning) and the evaluation stays eager."""
 
     def eager() -> tuple[torch.Tensor, list[torch.Tensor]]:
         with torch.enable_grad():
@@ -72,9 +73,10 @@ def gradient_evaluator(variables: list[torch.Tensor], energy_fn: Callable[[], to
             except Exception as error:  # noqa: BLE001 - any failure to record leaves the eager path
                 torch.cuda.set_stream(stream)  # a failed capture does not restore it
                 torch.cuda.synchronize()
-                (log.debug if _graph_failures else log.warning)(
-                    "CUDA graph not recorded, evaluating eagerly: %s", str(error).strip().splitlines()[0])
-                _graph_failures.append(str(error))
+                reason = (str(error).strip().splitlines() or [type(error).__name__])[0]
+                (log.debug if _graph_failures else log.warning)("CUDA graph not recorded, evaluating eagerly: %s",
+                                                                reason)
+                _graph_failures.append(reason)
                 recorded["graph"] = None
             return first
         if recorded["graph"] is None:
@@ -100,7 +102,7 @@ def minimise(
     """Minimise the scalar `energy_fn()` over `variables` (leaf tensors, requires_grad set here);
     `graph`: evaluations replay a CUDA graph (`gradient_evaluator`)."""
     variables = [v.requires_grad_(True) for v in variables]
-    evaluate = gradient_evaluator(variables, energy_fn, graph)
+    energy_and_gradients = gradient_evaluator(variables, energy_fn, graph)
     optimiser = torch.optim.LBFGS(
         variables, lr=1.0, max_iter=inner_iterations, history_size=history_size,
         line_search_fn="strong_wolfe", tolerance_grad=gtol, tolerance_change=1e-12,
@@ -110,7 +112,7 @@ def minimise(
     def closure():
         nonlocal evaluations
         evaluations += 1
-        energy, grads = evaluate()
+        energy, grads = energy_and_gradients()
         for v, g in zip(variables, grads):
             v.grad = g
         return energy
@@ -164,7 +166,7 @@ def minimise_per_frame(
     next. A frame whose step-start energy falls by no more than `ftol` between steps, or whose
     largest gradient entry is below `gtol`, stops moving. `graph`: as `minimise`'s."""
     variables = [v.requires_grad_(True) for v in variables]
-    evaluate_here = gradient_evaluator(variables, energy_fn, graph)
+    energy_and_gradients = gradient_evaluator(variables, energy_fn, graph)
     B = int(variables[0].shape[0])
     sizes = [v[0].numel() for v in variables]
     x = torch.cat([v.detach().reshape(B, -1) for v in variables], 1)
@@ -180,7 +182,7 @@ def minimise_per_frame(
         nonlocal evaluations
         evaluations += 1
         place(point)
-        f, grads = evaluate_here()
+        f, grads = energy_and_gradients()
         return f, torch.cat([d.reshape(B, -1) for d in grads], 1)
 
     history: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (s, y, 1 / s.y or 0), oldest first

@@ -776,11 +776,7 @@ class BodyFitter:
 
             def refresh(step, value):
                 if "depth" in phase.terms:
-                    matches = self.correspondences(current(), obs)
-                    if graph:  # in place: the graph reads them there
-                        state["matches"].assign(matches)
-                    else:
-                        state["matches"] = matches
+                    state["matches"] = state["matches"].refreshed(self.correspondences(current(), obs), graph)
                 if monitor is not None:
                     monitor(phase.name, step, value)
 

@@ -44,6 +44,7 @@ from tqdm import tqdm
 
 from intercap.body_models import setting_key, shared_model
 from intercap.io.files import per_frame_result, publish, save_npy, save_npz
+from intercap.session.session import in_threads
 
 log = logging.getLogger(__name__)
 
@@ -179,12 +180,12 @@ def load_per_frame(out_dir: Path, session) -> PerFrame:
 
 
 def session_mask_labels(session, frame_id: int, sizes) -> list[tuple[np.ndarray, np.ndarray] | None]:
-    """Per view (person, object) masks of the session, None where one is missing."""
-    out = []
-    for c in range(len(sizes)):
+    """Per view (person, object) masks of the session, None where one is missing; the views in IO threads."""
+    def read_view(c: int):
         person, obj = session.read_mask(c, frame_id, "person"), session.read_mask(c, frame_id, "object")
-        out.append(None if person is None or obj is None else (person, obj))
-    return out
+        return None if person is None or obj is None else (person, obj)
+
+    return in_threads(read_view, range(len(sizes)))
 
 
 def rendered_labels(body_vertices: np.ndarray, body_faces, object_vertices: np.ndarray, object_faces, cameras,

@@ -340,7 +340,7 @@ class GlobalFitter:
 
     def from_object(self, points: torch.Tensor, R: torch.Tensor, centre: torch.Tensor) -> torch.Tensor:
         """Object coordinates (M, 3) -> world (W, M, 3)."""
-        points = points.to(R.device)  # on the fit's device already where `ObjectShape.to` moved them
+        points = points.to(R.device)  # the fitter's shape is there already (`ObjectShape.on`)
         return (points - self.shape.centroid.to(points)) @ R.transpose(1, 2) + centre[:, None]
 
     # -- energy ---------------------------------------------------------------------------
@@ -434,11 +434,8 @@ class GlobalFitter:
 
         def refresh(step, value):
             if step % max(1, g.correspondence_every) == 0:
-                matches = self.body.correspondences(current()[0].detach(), data.obs)
-                if graph:  # in place: the graph reads them there
-                    state["matches"].assign(matches)
-                else:
-                    state["matches"] = matches
+                state["matches"] = state["matches"].refreshed(
+                    self.body.correspondences(current()[0].detach(), data.obs), graph)
             if monitor is not None:
                 monitor(step, value)
 
@@ -464,7 +461,8 @@ class WindowData:
     object_reference: torch.Tensor  # (W, M, 3) the object's samples where the tracker put them
     object_confidence: torch.Tensor  # (W,)
     grasping: torch.Tensor  # (W, 2) float
-    flight: torch.Tensor | None = None  # (W,) long: free-flight episode id per frame, -1 outside (GraviCap); None: no flight
+    flight: torch.Tensor | None = None  # (W,) long: free-flight episode id per frame, -1 outside (GraviCap);
+    # None when no frame of the window is in flight
 
 
 class Observations:
@@ -500,6 +498,7 @@ class Observations:
         P = self.cfg.global_.object_points_per_view * self.session.num_cameras
         cloud = np.zeros((len(frames), P, 3), np.float32)
         cloud_valid = np.zeros((len(frames), P), bool)
+
         def read_frame(b: int) -> None:  # in IO threads
             i = frames[b]
             pts = self.object_points(int(ids[b]), per_frame.R[i], per_frame.t[i], bool(per_frame.object_valid[i]),

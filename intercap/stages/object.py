@@ -70,6 +70,7 @@ from intercap.geometry.segmentation import (
 from intercap.geometry.symmetry import axis_angle_matrix
 from intercap.io.files import publish, save_npz
 from intercap.parallel import Chunk, chunk_groups, lockstep, run_chunks
+from intercap.session.session import in_threads
 
 log = logging.getLogger(__name__)
 reg = o3d.pipelines.registration
@@ -234,10 +235,12 @@ class ObjectTracker:
         depths = np.zeros((C, H, W), np.float32)
         known = np.zeros((C, H, W), np.float32)
         has = np.zeros(C, bool)
-        for c, (h, w) in enumerate(self.sizes):
+
+        def read_view(c: int) -> None:  # the views in IO threads (`in_threads`)
+            h, w = self.sizes[c]
             depth = self.session.read_depth(c, frame_id)
             if depth is None:
-                continue
+                return
             depths[c, :h, :w] = depth
             if self.session_masks and self.session.has_frame(c, "mask_object", frame_id):
                 mask = self.session.read_mask(c, frame_id, "object")
@@ -247,6 +250,8 @@ class ObjectTracker:
             if mask is not None and mask.sum() >= self.cfg.min_mask_px:
                 masks[c, :h, :w] = mask
                 has[c] = True
+
+        in_threads(read_view, range(C))
         return Observation(mask=masks, depth=depths, has_view=has, known=known)
 
     def derived_mask(self, c: int, frame_id: int, depth: np.ndarray, predicted, reach_m: float = 0.0):
@@ -323,23 +328,26 @@ class ObjectTracker:
         return np.asarray(t_c) - np.asarray(R) @ self.centroid
 
     # -- fitting -------------------------------------------------------------------------------
-    def crops_for(self, obs: Observation, R, t) -> torch.Tensor:
-        """(C, 4) square boxes covering the projected pose and the observed mask, per view."""
+    def crops_for(self, poses: list[tuple[Observation, np.ndarray, np.ndarray]]) -> torch.Tensor:
+        """(P, C, 4) square boxes covering each (observation, R, t)'s projected pose and observed
+        mask, per view. The P poses are projected together: one copy back from the fit's device."""
         cfg = self.cfg
-        pix, _ = project(torch.as_tensor(self.world_vertices_np(R, t), dtype=torch.float32, device=self.device),
-                         self.cameras)
-        pix = pix.cpu()  # the boxes (and so the crops) are made on the CPU
-        boxes = []
-        for c, (H, W) in enumerate(self.sizes):
-            lo, hi = pix[c].amin(0).numpy(), pix[c].amax(0).numpy()
-            if obs.has_view[c]:
-                ys, xs = np.nonzero(obs.mask[c] > 0.5)
-                lo = np.minimum(lo, [xs.min(), ys.min()])
-                hi = np.maximum(hi, [xs.max(), ys.max()])
-            lo, hi = np.maximum(lo, [-W, -H]), np.minimum(hi, [2 * W, 2 * H])
-            centre, half = (lo + hi) / 2, max((hi - lo).max() / 2 * (1 + cfg.crop_margin), 8.0)
-            boxes.append([centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half])
-        return torch.tensor(boxes, dtype=torch.float32)
+        world = np.concatenate([self.world_vertices_np(R, t) for _, R, t in poses])  # (P * V, 3)
+        pix, _ = project(torch.as_tensor(world, dtype=torch.float32, device=self.device), self.cameras)
+        pix = pix.view(len(self.sizes), len(poses), -1, 2)
+        lows, highs = pix.amin(2).cpu().numpy(), pix.amax(2).cpu().numpy()  # (C, P, 2): the boxes are made on the CPU
+        boxes = np.zeros((len(poses), len(self.sizes), 4), np.float32)
+        for p, (obs, _, _) in enumerate(poses):
+            for c, (H, W) in enumerate(self.sizes):
+                lo, hi = lows[c, p], highs[c, p]
+                if obs.has_view[c]:
+                    ys, xs = np.nonzero(obs.mask[c] > 0.5)
+                    lo = np.minimum(lo, [xs.min(), ys.min()])
+                    hi = np.maximum(hi, [xs.max(), ys.max()])
+                lo, hi = np.maximum(lo, [-W, -H]), np.minimum(hi, [2 * W, 2 * H])
+                centre, half = (lo + hi) / 2, max((hi - lo).max() / 2 * (1 + cfg.crop_margin), 8.0)
+                boxes[p, c] = [centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half]
+        return torch.from_numpy(boxes)
 
     def _visible(self, rendered_depth, obs_depth, obs_mask) -> torch.Tensor:
         """1 where the rendered object could be seen: not behind a measured occluder. The
@@ -390,7 +398,7 @@ class ObjectTracker:
         result is each fit's alone, at the launches of one (a GPU's time follows the launches)."""
         cfg = self.cfg
         P, dev = len(requests), self.device
-        crops = torch.stack([self.crops_for(obs, R0, t0) for obs, R0, t0, _ in requests])  # (P, C, 4)
+        crops = self.crops_for([(obs, R0, t0) for obs, R0, t0, _ in requests])  # (P, C, 4)
         cut = [self.windows(obs, c) for (obs, *_), c in zip(requests, crops)]
         obs_mask, obs_depth, obs_known = (torch.stack(parts) for parts in zip(*cut))
         view_weight = torch.as_tensor(np.stack([obs.has_view for obs, *_ in requests]), dtype=torch.float32, device=dev)

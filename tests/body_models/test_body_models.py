@@ -137,7 +137,8 @@ def test_phenotype_interpolation_is_annys_on_the_anchors_device(anny_model):
     for anchors in (torch.tensor([0.0, 0.1875, 0.5, 1.0]), torch.linspace(0, 1, 3), torch.linspace(0, 1, 2)):
         for extrapolate in (False, True):
             value = torch.cat([torch.rand(40, generator=g) * 1.4 - 0.2, anchors]).requires_grad_(True)
-            ours, annys = interpolation_weights(value, anchors, extrapolate), ANNY_INTERPOLATION[0](value, anchors, extrapolate)
+            ours = interpolation_weights(value, anchors, extrapolate)
+            annys = ANNY_INTERPOLATION[0](value, anchors, extrapolate)
             assert torch.equal(ours, annys)
             weight = torch.randn(ours.shape, generator=g)
             assert torch.equal(*(torch.autograd.grad((w * weight).sum(), value)[0] for w in (ours, annys)))

@@ -87,9 +87,10 @@ def test_depth_pairs_give_the_dense_definition_of_e_d():
         flat_grad, = torch.autograd.grad(flat.sum(), vertices)
         assert torch.allclose(flat, dense, rtol=1e-5, atol=1e-9)
         assert torch.allclose(flat_grad, dense_grad, rtol=1e-4, atol=1e-7)
-    # a refresh taken in place (what a recorded CUDA graph reads) is the new pairs' energy
+    # a refresh taken in place (what a recorded CUDA graph reads) gives the new pairs' energy
     others = depth_pairs(points, valid, normals, nearest.roll(1, 2), to_points.roll(1, 2), half_weight, compact=False)
-    pairs.assign(others)
+    assert pairs.refreshed(others, in_place=False) is others
+    assert pairs.refreshed(others, in_place=True) is pairs
     assert torch.equal(depth_point_to_plane(vertices, pairs, scale), depth_point_to_plane(vertices, others, scale))
     assert not torch.allclose(depth_point_to_plane(vertices, others, scale), dense)
 

@@ -28,3 +28,15 @@ def test_kernels_count_at_the_intercap_function_issuing_them():
         distort(xy, coefficients)
     assert set(count.sites) == {"geometry.cameras:distort", "geometry.cameras:_radial_factor"}
     assert count.sites["geometry.cameras:_radial_factor"] >= 10  # its rational polynomial, op by op
+
+
+def test_replayed_evaluations_count_apart():
+    """Kernels run while `replaying` (a GPU's CUDA-graph replay) count in `in_graphs`, not as
+    launched kernels, so `--graphs` predicts the launches a GPU makes."""
+    x = torch.randn(3)
+    with OperationCount() as count:
+        x.exp()
+        count.replaying = True
+        (x * 2).sin()
+        count.replaying = False
+    assert (count.kernels, count.in_graphs) == (1, 2)

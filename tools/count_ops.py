@@ -21,6 +21,8 @@ caller). Counting slows the run several times: its timings mean nothing.
                               [--out DIR] [--sites 15] [--set SECTION.KEY=VALUE ...]
 
 `--alone` runs only the counted stages (for one that needs no earlier stage's results: object).
+`--graphs` counts the body's and global stage's evaluations after each fit's first apart, as the
+CUDA-graph replays a GPU runs them as (`optim.gradient_evaluator`): one launch each.
 
 `--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=300 --set
 object.side_by_side=8` runs the GPU's settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`,
@@ -47,16 +49,23 @@ US_PER_KERNEL_H100 = 25.0  # the sample's stages on one H100 (2026-11-26): secon
 
 
 class OperationCount(TorchDispatchMode):
-    """Counts the aten operations dispatched while active; kernels by the intercap function issuing them."""
+    """Counts the aten operations dispatched while active; kernels by the intercap function issuing
+    them. Kernels of evaluations a GPU replays from a recorded CUDA graph (`replaying`) count apart
+    (`in_graphs`, and one launch per replay in `replays`)."""
 
     def __init__(self):
         super().__init__()
-        self.all = self.kernels = self.backward = 0
+        self.all = self.kernels = self.backward = self.in_graphs = self.replays = 0
+        self.replaying = False
         self.sites = collections.Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.all += 1
-        if func.overloadpacket.__name__ not in VIEW_OPS:
+        if func.overloadpacket.__name__ in VIEW_OPS:
+            pass
+        elif self.replaying:
+            self.in_graphs += 1
+        else:
             self.kernels += 1
             if torch._C._current_autograd_node() is not None:
                 self.backward += 1
@@ -76,27 +85,53 @@ def issuing_function(frame) -> str:
 
 
 def count_stages(session: Path, out: Path, stages: list[str], overrides: list[str],
-                 alone: bool = False) -> tuple[dict, int]:
+                 alone: bool = False, graphs: bool = False) -> tuple[dict, int]:
     """Run the pipeline (or, `alone`, only `stages`) on `session` into `out`, counting inside `stages`:
     ({stage: OperationCount}, frames)."""
     from intercap import pipeline
     from intercap.config import load_config
     from intercap.session import Session
 
-    counts = {}
+    from intercap.energies import optim
+
+    counts, running = {}, {}
     originals = dict(pipeline.STAGES)
+    evaluator = optim.gradient_evaluator
 
     def counted(name, run):
         def run_counting(session, cfg, out_dir, progress):
-            counts[name] = OperationCount()
-            with counts[name]:
-                return run(session, cfg, out_dir, progress)
+            counts[name] = running["stage"] = OperationCount()
+            try:
+                with counts[name]:
+                    return run(session, cfg, out_dir, progress)
+            finally:
+                running.clear()
         return run_counting
+
+    def as_on_a_gpu(variables, energy_fn, graph=False):
+        """`optim.gradient_evaluator` whose calls after the first count as a GPU's graph replays
+        (the body's and global stage's fits record one where `cuda_graphs` is on; this ignores the
+        global stage's windows with a free flight, which stay eager)."""
+        evaluate, calls = evaluator(variables, energy_fn, graph), []
+
+        def counted_evaluation():
+            calls.append(1)
+            counter = running.get("stage")
+            if len(calls) == 1 or counter is None:
+                return evaluate()
+            counter.replaying, counter.replays = True, counter.replays + 1
+            try:
+                return evaluate()
+            finally:
+                counter.replaying = False
+        return counted_evaluation
 
     from intercap.geometry import rendering
 
     cpu_pairs = rendering.MAX_PAIRS["cpu"]
     rendering.MAX_PAIRS["cpu"] = rendering.MAX_PAIRS["cuda"]  # the renderer's work in a GPU's chunks
+    if graphs:
+        optim.gradient_evaluator = as_on_a_gpu
     try:
         for name in stages:
             pipeline.STAGES[name] = dataclasses.replace(originals[name], run=counted(name, originals[name].run))
@@ -105,6 +140,7 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
     finally:
         pipeline.STAGES.update(originals)
         rendering.MAX_PAIRS["cpu"] = cpu_pairs
+        optim.gradient_evaluator = evaluator
     return counts, Session.load(session).num_frames
 
 
@@ -116,6 +152,8 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path, help="results folder (default: a temporary one)")
     parser.add_argument("--sites", type=int, default=15, help="issuing functions listed per stage")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
+    parser.add_argument("--graphs", action="store_true",
+                        help="count the body's and global stage's evaluations after each fit's first as CUDA-graph replays")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     from intercap.pipeline import STAGES
@@ -125,15 +163,19 @@ def main(argv=None) -> None:
     if unknown:
         parser.error(f"unknown stage(s) {', '.join(unknown)}; available: {', '.join(STAGES)}")
     with tempfile.TemporaryDirectory(prefix="count_ops_") as scratch:
-        counts, T = count_stages(args.session, args.out or Path(scratch), stages, args.set, args.alone)
+        counts, T = count_stages(args.session, args.out or Path(scratch), stages, args.set, args.alone, args.graphs)
 
     print(f"\noperations per frame on {args.session} ({T} frames; {' '.join(args.set) or 'default settings'})")
-    print(f"{'stage':8s} {'all':>9s} {'kernels':>9s} {'backward':>9s} {'H100 s/frame >= (25 us each)':>29s}")
+    print(f"{'stage':8s} {'all':>9s} {'kernels':>9s} {'backward':>9s} {'in graphs':>10s} {'replays':>8s} "
+          f"{'H100 s/frame >= (25 us a launch)':>33s}")
     for name, c in counts.items():
-        print(f"{name:8s} {c.all / T:9.0f} {c.kernels / T:9.0f} {c.backward / T:9.0f} "
-              f"{c.kernels / T * US_PER_KERNEL_H100 * 1e-6:29.3f}")
-    total = sum(c.kernels for c in counts.values()) / T
-    print(f"{'total':8s} {'':9s} {total:9.0f} {'':9s} {total * US_PER_KERNEL_H100 * 1e-6:29.3f}")
+        launches = (c.kernels + c.replays) / T
+        print(f"{name:8s} {c.all / T:9.0f} {c.kernels / T:9.0f} {c.backward / T:9.0f} {c.in_graphs / T:10.0f} "
+              f"{c.replays / T:8.1f} {launches * US_PER_KERNEL_H100 * 1e-6:33.3f}")
+    total = sum(c.kernels + c.replays for c in counts.values()) / T
+    print(f"{'total':8s} {'':9s} {'':9s} {'':9s} {'':10s} {'':8s} {total * US_PER_KERNEL_H100 * 1e-6:33.3f}")
+    if args.graphs:
+        print("(kernels: launched one by one; in graphs: run by the replays, whose GPU time this does not count)")
     for name, c in counts.items():
         print(f"\n{name}: forward kernels per frame by issuing function")
         for site, n in c.sites.most_common(args.sites):

@@ -126,10 +126,10 @@ def _nearest_dense(queries: torch.Tensor, query_mask: torch.Tensor, targets: tor
                    target_mask: torch.Tensor, max_distance: float, max_entries: int = 1 << 26) -> torch.Tensor:
     """`_nearest_per_view` by the dense distance matrix, in chunks of frames of at most
     `max_entries` (query, target) pairs. The squared distances up to each query's own |q|^2,
-    |t|^2 - 2 q.t, are one batched matrix product (torch.cdist's exact mode runs a block per
-    distance on a GPU: it took 24 s of the H200's 132 s bench); coordinates are centred per frame
-    and view first, so fp32 rounding (about 1e-7 m^2) decides only near-exact ties, and the
-    chosen target's exact distance is what `max_distance` bounds."""
+    |t|^2 - 2 q.t, are one batched matrix product (with torch.cdist's exact mode, slow on GPUs,
+    the H200's 132 s bench waited 26 s on the refresh); coordinates are centred per frame and
+    view first, so fp32 rounding (about 1e-7 m^2) decides only near-exact ties, and the chosen
+    target's exact distance is what `max_distance` bounds."""
     B, C, Q, _ = queries.shape
     T = targets.shape[2]
     nearest = torch.full((B, C, Q), -1, dtype=torch.long, device=queries.device)

@@ -224,7 +224,7 @@ def minimise_per_frame(
             length = trial.clone()
             pending = inner.clone()
             f_new, g_new = f, g
-            for _ in range(max_line_search):
+            for trial_index in range(max_line_search):
                 f_try, g_try = evaluate(x + length[:, None] * d)
                 ok = pending & torch.isfinite(f_try) & (f_try <= f + 1e-4 * length * slope)
                 f_new = torch.where(ok, f_try, f_new)
@@ -233,7 +233,7 @@ def minimise_per_frame(
                 excess = torch.nan_to_num(f_try - f - length * slope, nan=math.inf, posinf=math.inf)
                 shrunk = -slope * length**2 / (2 * excess.clamp(min=1e-30))  # minimum of the quadratic through them
                 length = torch.where(pending, torch.minimum(torch.maximum(shrunk, 0.1 * length), 0.5 * length), length)
-                if not bool(pending.any()):
+                if trial_index + 1 < max_line_search and not bool(pending.any()):  # (the last trial: no GPU wait)
                     break
             taken = inner & ~pending
             trial = torch.where(taken, torch.ones_like(trial), length)  # a frame still backtracking goes on next time

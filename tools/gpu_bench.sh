@@ -30,7 +30,9 @@ bench() {  # NAME TIMEOUT ARGS...
     cp /tmp/k_$name/*_out/profile.txt "$OUT/${name}_profile.txt" 2>/dev/null
 }
 if [ "${TESTS_S:-200}" != 0 ]; then
-    timeout "${TESTS_S:-200}" python3 -m pytest -q -p no:cacheprovider ${TESTS:-tests/test_cuda.py} > "$OUT/test_cuda.log" 2>&1
+    # SIGINT at the limit: pytest stops and still reports the failures so far
+    timeout -s INT -k 15 "${TESTS_S:-200}" python3 -m pytest -q --tb=short -p no:cacheprovider ${TESTS:-tests/test_cuda.py} \
+        > "$OUT/test_cuda.log" 2>&1
     echo "test_cuda: rc $? after $(( $(date +%s) - T0 )) s"; tail -n 15 "$OUT/test_cuda.log"
 fi
 bench gpu "${GPU_S:-420}" --set run.device=cuda --profile

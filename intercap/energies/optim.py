@@ -185,7 +185,8 @@ def minimise_per_frame(
         f, grads = energy_and_gradients()
         return f, torch.cat([d.reshape(B, -1) for d in grads], 1)
 
-    history: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor]] = []  # (s, y, 1 / s.y or 0), oldest first
+    # (s, y, rho s, rho y) with rho = 1 / s.y per frame (0 for a pair not kept), oldest first
+    history: list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]] = []
     scale = torch.full((B,), math.nan, dtype=x.dtype, device=x.device)  # s.y / y.y of the newest good pair
     moving = torch.ones(B, dtype=torch.bool, device=x.device)
     previous = torch.full((B,), math.inf, dtype=x.dtype, device=x.device)
@@ -204,17 +205,17 @@ def minimise_per_frame(
         trial = torch.ones_like(f)  # each frame's next trial step length
         for _ in range(inner_iterations):
             # the direction: the two-loop recursion of each frame's own history
+            # (each pair's rho folded into rho s and rho y: five kernels a pair, not eleven)
             q = -g
             alphas = []
-            for s, y, rho in reversed(history):
-                a = rho * (s * q).sum(1)
-                q = q - a[:, None] * y
+            for s, y, rho_s, _ in reversed(history):
+                a = row_dot(rho_s, q)
+                q = torch.addcmul(q, a[:, None], y, value=-1.0)
                 alphas.append(a)
             first = torch.clamp(1.0 / g.abs().sum(1).clamp(min=1e-30), max=1.0)  # torch's first step: |g|_1 <= 1
             q = q * torch.where(torch.isnan(scale), first, scale)[:, None]
-            for (s, y, rho), a in zip(history, reversed(alphas)):
-                b = rho * (y * q).sum(1)
-                q = q + (a - b)[:, None] * s
+            for (s, y, _, rho_y), a in zip(history, reversed(alphas)):
+                q = torch.addcmul(q, (a - row_dot(rho_y, q))[:, None], s)
             d = torch.where(inner[:, None], q, torch.zeros_like(q))
             slope = (g * d).sum(1)
             uphill = inner & (slope >= 0)  # not a descent direction (a poor history): steepest descent
@@ -242,7 +243,8 @@ def minimise_per_frame(
             y = g_new - g
             sy = (s * y).sum(1)
             good = taken & (sy > 1e-10)
-            history.append((s, y, torch.where(good, 1.0 / sy.clamp(min=1e-10), torch.zeros_like(sy))))
+            rho = torch.where(good, 1.0 / sy.clamp(min=1e-10), torch.zeros_like(sy))[:, None]
+            history.append((s, y, rho * s, rho * y))
             if len(history) > history_size:
                 history.pop(0)
             scale = torch.where(good, sy / (y * y).sum(1).clamp(min=1e-30), scale)
@@ -258,6 +260,11 @@ def minimise_per_frame(
     with torch.no_grad():
         final = float(energy_fn().sum())
     return MinimiseResult(final, step, evaluations, stopped)
+
+
+def row_dot(u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(B, n), (B, n) -> (B,) the rows' dot products, as one batched product (one kernel)."""
+    return torch.bmm(u.unsqueeze(1), v.unsqueeze(2)).view(-1)
 
 
 class AdamRows:

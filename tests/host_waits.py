@@ -9,9 +9,11 @@ from intercap.energies import optim
 
 
 class HostWaits(TorchDispatchMode):
-    """Records the aten operations that make the CPU wait on a GPU (a value read back, a shape that
-    depends on data, a linear-algebra result checked, data copied from the host): none may run
-    inside a recorded CUDA graph, so the body's evaluation must issue none. Seen on the CPU."""
+    """Records what makes the CPU wait on a GPU or copy to it: a value read back, a shape that
+    depends on data, a linear-algebra result checked, data or a scalar copied from the host, a
+    tensor made without a device (on the CPU, in a GPU run). None of it may run inside a
+    recorded CUDA graph, so the body's and the global stage's evaluations must issue none. Seen
+    on the CPU: aten operations as dispatched, torch's factories as called."""
 
     WAITING = {"_local_scalar_dense", "nonzero", "masked_select", "unique_dim", "_unique2", "unique_consecutive",
                "equal", "is_nonzero", "bincount", "histc", "_linalg_check_errors", "repeat_interleave"}

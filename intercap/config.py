@@ -160,7 +160,7 @@ class BodyConfig:
     full_steps: int = 20  # + hands, with the depth term and self-penetration (10: stoops stay 2x off, BENCHMARKS.md)
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
-    cuda_graphs: bool = True  # on CUDA a phase's evaluations replay one recorded graph (where the phenotype is fixed)
+    cuda_graphs: bool = True  # on CUDA each phase's evaluations replay one recorded graph (`optim.gradient_evaluator`)
     per_frame_lbfgs: bool = True  # each frame its own L-BFGS (`minimise_per_frame`) where the frames do not interact;
     # false: one L-BFGS over the batch's summed energy (150 frames, 32-frame batches: surface 6.2 against 5.8 mm)
     # tracking: a frame whose person points lie far from its fit (median distance, mm), or, seen with

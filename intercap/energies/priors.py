@@ -473,10 +473,9 @@ def _constant_like(values, t: torch.Tensor) -> torch.Tensor:
 
 
 @lru_cache(maxsize=None)
-def _limit_rows(joints: tuple[str, ...], device: torch.device) -> torch.Tensor:
-    """The rows of `joint_limit_excess` that belong to `joints`, as indices on `device`."""
-    rows = [i for i, j in enumerate(_shipped_anatomy().row_joints) if j in joints]
-    return torch.tensor(rows, dtype=torch.long, device=device)
+def _limit_rows(joints: tuple[str, ...]) -> tuple[int, ...]:
+    """The rows of `joint_limit_excess` that belong to `joints`."""
+    return tuple(i for i, j in enumerate(_shipped_anatomy().row_joints) if j in joints)
 
 
 # ---------------------------------------------------------------------------
@@ -542,7 +541,8 @@ def joint_limit_penalty(body_pose: torch.Tensor, joints: tuple[str, ...] | None 
     if excess is None:
         excess = joint_limit_excess(body_pose)
     if joints is not None:
-        return (excess.index_select(1, _limit_rows(tuple(joints), body_pose.device)) ** 2).sum((1, 2))
+        rows = device_constant(_limit_rows(tuple(joints)), body_pose.device, torch.long)
+        return (excess.index_select(1, rows) ** 2).sum((1, 2))
     swing = second_bone_swing(body_pose)
     second = torch.relu(swing.abs() - math.radians(SECOND_BONE_SWING)) ** 2
     return (excess**2).sum((1, 2)) + second.sum((1, 2))

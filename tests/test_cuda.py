@@ -259,12 +259,19 @@ def gpu_observations(tmp_path, frames: int):
     return session, bcfg, cameras, obs
 
 
-def test_object_fits_side_by_side_on_gpu_match_cpu():
+def test_object_fits_side_by_side_on_gpu_match_cpu(monkeypatch):
     """`ObjectTracker.fit_many` on the GPU: three fits at once (different frames and budgets) end
-    where the CPU's do."""
+    where the CPU's do, their renders in fixed shapes and their steps replayed from a recorded
+    CUDA graph (`object.cuda_graphs`)."""
     from intercap.config import load_config
+    from intercap.energies import optim
     from intercap.session import Session
     from intercap.stages.object import ObjectTracker, axis_rotation
+
+    replays = []
+    replay = torch.cuda.CUDAGraph.replay
+    monkeypatch.setattr(torch.cuda.CUDAGraph, "replay", lambda graph: replays.append(1) or replay(graph))
+    optim._graph_failures.clear()
 
     session = Session.load(SAMPLE_SESSION)
     cfg = load_config().object
@@ -276,9 +283,11 @@ def test_object_fits_side_by_side_on_gpu_match_cpu():
         R, t = truth["R"][frame], truth["t"][frame]
         requests.append((on_cpu.observe(frame, (R, t)), axis_rotation(rng.normal(size=3) / np.sqrt(3), 5.0) @ R,
                          t + rng.normal(scale=0.01, size=3), iterations))
+    assert on_gpu.fixed_shapes and not on_cpu.fixed_shapes
     for cpu, gpu in zip(on_cpu.fit_many(requests), on_gpu.fit_many(requests)):
         assert abs(cpu.energy - gpu.energy) < 1e-3 * max(1.0, cpu.energy)
         assert np.abs(cpu.t - gpu.t).max() < 1e-3 and np.abs(cpu.R - gpu.R).max() < 1e-2
+    assert optim._graph_failures == [] and len(replays) > 5, (optim._graph_failures, len(replays))
 
 
 def test_dense_nearest_search_on_gpu_finds_what_the_trees_find():

@@ -21,8 +21,9 @@ caller). Counting slows the run several times: its timings mean nothing.
                               [--out DIR] [--sites 15] [--set SECTION.KEY=VALUE ...]
 
 `--alone` runs only the counted stages (for one that needs no earlier stage's results: object).
-`--graphs` counts the body's and global stage's evaluations after each fit's first apart, as the
-CUDA-graph replays a GPU runs them as (`optim.gradient_evaluator`): one launch each.
+`--graphs` counts the body's, the global stage's and the object's evaluations after each fit's
+first apart, as the CUDA-graph replays a GPU runs them as (`optim.gradient_evaluator`): one launch
+each; the object's fits render in fixed shapes, as on a GPU (`ObjectTracker.fixed_shapes`).
 
 `--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=300 --set
 object.side_by_side=8` runs the GPU's settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`,
@@ -110,8 +111,8 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
 
     def as_on_a_gpu(variables, energy_fn, graph=False):
         """`optim.gradient_evaluator` whose calls after the first count as a GPU's graph replays
-        (the body's and global stage's fits record one where `cuda_graphs` is on; this ignores the
-        global stage's windows with a free flight, which stay eager)."""
+        (the fits record one where `cuda_graphs` is on; this ignores the global stage's windows
+        with a free flight, which stay eager)."""
         evaluate, calls = evaluator(variables, energy_fn, graph), []
 
         def counted_evaluation():
@@ -127,11 +128,19 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
         return counted_evaluation
 
     from intercap.geometry import rendering
+    from intercap.stages.object import ObjectTracker
+
+    tracker_init = ObjectTracker.__init__
+
+    def tracker_as_on_a_gpu(self, *args, **kwargs):
+        tracker_init(self, *args, **kwargs)
+        self.fixed_shapes = self.cfg.cuda_graphs
 
     cpu_pairs = rendering.MAX_PAIRS["cpu"]
     rendering.MAX_PAIRS["cpu"] = rendering.MAX_PAIRS["cuda"]  # the renderer's work in a GPU's chunks
     if graphs:
         optim.gradient_evaluator = as_on_a_gpu
+        ObjectTracker.__init__ = tracker_as_on_a_gpu
     try:
         for name in stages:
             pipeline.STAGES[name] = dataclasses.replace(originals[name], run=counted(name, originals[name].run))
@@ -141,6 +150,7 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
         pipeline.STAGES.update(originals)
         rendering.MAX_PAIRS["cpu"] = cpu_pairs
         optim.gradient_evaluator = evaluator
+        ObjectTracker.__init__ = tracker_init
     return counts, Session.load(session).num_frames
 
 
@@ -153,7 +163,7 @@ def main(argv=None) -> None:
     parser.add_argument("--sites", type=int, default=15, help="issuing functions listed per stage")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
     parser.add_argument("--graphs", action="store_true",
-                        help="count the body's and global stage's evaluations after each fit's first as CUDA-graph replays")
+                        help="count the fits' evaluations after each fit's first as CUDA-graph replays")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     from intercap.pipeline import STAGES

@@ -76,8 +76,15 @@ About 4 ms of a call is fixed cost (~1500 small tensor ops), so batching views
 the face count: no mesh simplification is needed up to a few thousand faces.
 Memory: `max_pairs`-sized chunks plus O(B C h w) buffers. With 2 torch threads on
 a loaded machine every op can be 10x slower (thread hand-offs): the tracker
-should run torch with 1 thread there. CUDA: not measured (no GPU here); the
-code is device-agnostic.
+should run torch with 1 thread there. The code is device-agnostic.
+
+Fixed shapes (`capacity=Capacity(...)`, the object fit on CUDA): the scanlines, their
+pixels, the contour edges and the outline pieces go into slots of fixed number (a
+cumulative sum and `searchsorted` instead of `nonzero` / `repeat_interleave`), every
+face and pixel is kept with a mask, and nothing is read back from the device, so a
+CUDA graph can record a render and replay it while the pose moves. The result is the
+compact render's (coverage and depth bit for bit, the silhouette to float rounding)
+as long as `RenderOutput.needed` fits the capacity; size it with `Capacity.fitting`.
 """
 from __future__ import annotations
 
@@ -103,7 +110,9 @@ class MeshTopology:
     faces: (F, 3) long; edges: (E, 2) long unique undirected edges;
     face_edges: (F, 3) index of edge k = (faces[f, k], faces[f, k+1 mod 3]);
     opposite: (F, 3) the vertex opposite that edge (faces[f, k+2 mod 3]);
-    faces_per_edge: (E,) how many faces share each edge (1 = mesh boundary).
+    faces_per_edge: (E,) how many faces share each edge (1 = mesh boundary);
+    vertices: how many vertices the faces index (the largest index + 1), kept as a
+    number so that `render` checks its input without reading the GPU.
     """
 
     faces: torch.Tensor
@@ -111,6 +120,7 @@ class MeshTopology:
     face_edges: torch.Tensor
     opposite: torch.Tensor
     faces_per_edge: torch.Tensor
+    vertices: int
 
     @classmethod
     def from_faces(cls, faces) -> "MeshTopology":
@@ -131,10 +141,11 @@ class MeshTopology:
             face_edges=inverse.reshape(-1, 3),
             opposite=faces.roll(-2, dims=1),
             faces_per_edge=torch.bincount(inverse, minlength=len(uniq)),
+            vertices=n if faces.numel() else 0,
         )
 
     def to(self, device) -> "MeshTopology":
-        return MeshTopology(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))
+        return MeshTopology(**{k: v.to(device) if isinstance(v, torch.Tensor) else v for k, v in vars(self).items()})
 
 
 @dataclass
@@ -148,6 +159,31 @@ class RenderOutput:
     depth: torch.Tensor
     coverage: torch.Tensor
     crops: torch.Tensor
+    needed: torch.Tensor  # (4,) long: lines, pixels, contour edges, outline pieces enumerated (wanted, with a `Capacity`)
+
+
+@dataclass(frozen=True)
+class Capacity:
+    """Fixed sizes for `render`'s data-dependent tensors: slots for the triangles' scanlines,
+    their pixels, the contour edges and the outline pieces. With them a render waits on nothing
+    and keeps its shapes from call to call, so that a CUDA graph can record it (the object fit,
+    `optim.gradient_evaluator`). What does not fit is lost: check `RenderOutput.needed` with
+    `holds` and render again with `fitting(needed)`."""
+
+    lines: int
+    pixels: int
+    contours: int
+    pieces: int
+
+    @classmethod
+    def fitting(cls, needed, slack: float = 0.5, quantum: int = 1024) -> "Capacity":
+        """Room for the counts `needed` (lines, pixels, contours, pieces) and `slack` more, rounded
+        up to `quantum` slots: a pose moved a little still fits, and the shapes repeat."""
+        return cls(*(max(quantum, -(-int(n * (1 + slack)) // quantum) * quantum) for n in needed))
+
+    def holds(self, needed) -> bool:
+        """Whether counts `needed` (a `RenderOutput.needed`, read here) fit."""
+        return all(int(n) <= c for n, c in zip(needed.tolist(), (self.lines, self.pixels, self.contours, self.pieces)))
 
 
 # ----------------------------------------------------------------------------- crops
@@ -171,15 +207,14 @@ def _valid_vertices(p_cam: torch.Tensor, dist: torch.Tensor, znear: float, max_r
     xy = p_cam[..., :2] / torch.where(ok, z, torch.ones_like(z))[..., None]
     r2 = (xy * xy).sum(-1)  # (B, C, V)
     ok &= r2 < max_radius**2
-    if bool((dist != 0).any()):
-        k1, k2, k3, k4, k5, k6 = (dist[None, :, i, None] for i in (0, 1, 4, 5, 6, 7))  # (1, C, 1)
-        num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-        dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
-        dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
-        # d(r * num / den) / dr = (num den + 2 r2 (dnum den - num dden)) / den^2 > 0, with den > 0
-        ok &= (den > 0) & (num * den + 2 * r2 * (dnum * den - num * dden) > 0)
-    return ok
+    # (without distortion this holds everywhere; it is checked anyway, as asking would wait on a GPU)
+    k1, k2, k3, k4, k5, k6 = (dist[None, :, i, None] for i in (0, 1, 4, 5, 6, 7))  # (1, C, 1)
+    num = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    den = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
+    dnum = k1 + r2 * (2 * k2 + 3 * k3 * r2)
+    dden = k4 + r2 * (2 * k5 + 3 * k6 * r2)
+    # d(r * num / den) / dr = (num den + 2 r2 (dnum den - num dden)) / den^2 > 0, with den > 0
+    return ok & (den > 0) & (num * den + 2 * r2 * (dnum * den - num * dden) > 0)
 
 
 def object_crops(
@@ -284,18 +319,31 @@ def _take_cols(table: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return table.index_select(1, idx)
 
 
-def _expand(counts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """counts (M,) long -> (owner (P,), local (P,)): owner m repeated counts[m] times, local 0..counts[m]-1."""
-    P = int(counts.sum()) if counts.numel() else 0
-    owner = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts, output_size=P)
-    first = counts.cumsum(0) - counts
-    return owner, torch.arange(P, device=counts.device) - _take(first, owner)
+def _expand(counts: torch.Tensor, capacity: int | None = None):
+    """counts (M,) long -> (owner (P,), local (P,), used): owner m repeated counts[m] times, local
+    0..counts[m]-1. P = sum(counts), read back from the device, and used is None; or, with
+    `capacity` (M >= 1), P = capacity slots and no wait on the device: used (P,) marks the
+    sum(counts) slots in use, the rest repeat the last owner and must be masked."""
+    if capacity is None:
+        P = int(counts.sum()) if counts.numel() else 0
+        owner = torch.repeat_interleave(torch.arange(counts.numel(), device=counts.device), counts, output_size=P)
+        first = counts.cumsum(0) - counts
+        return owner, torch.arange(P, device=counts.device) - _take(first, owner), None
+    cum = counts.cumsum(0)
+    slot = torch.arange(capacity, device=counts.device)
+    owner = torch.searchsorted(cum, slot, right=True).clamp(max=counts.numel() - 1)
+    return owner, slot - (_take(cum, owner) - _take(counts, owner)), slot < cum[-1:]
 
 
-def _span_pixels(s_lo: torch.Tensor, s_hi: torch.Tensor, max_pairs: int):
-    """Lines with inclusive pixel spans [s_lo, s_hi] (R,) -> yields (line (P,), s (P,)) in
-    chunks of about `max_pairs` pixels (a line is never split), bounding memory."""
+def _span_pixels(s_lo: torch.Tensor, s_hi: torch.Tensor, max_pairs: int, capacity: int | None = None):
+    """Lines with inclusive pixel spans [s_lo, s_hi] (R,) -> yields (line (P,), s (P,), used) in
+    chunks of about `max_pairs` pixels (a line is never split), bounding memory; with
+    `capacity`, one chunk of that many slots, `used` marking those in use (`_expand`)."""
     counts = (s_hi - s_lo + 1).clamp(min=0)
+    if capacity is not None:
+        line, local, used = _expand(counts, capacity)
+        yield line, _take(s_lo, line) + local, used
+        return
     if counts.numel() == 0:
         return
     cum = counts.cumsum(0)
@@ -306,24 +354,11 @@ def _span_pixels(s_lo: torch.Tensor, s_hi: torch.Tensor, max_pairs: int):
             end = counts.numel()
         else:
             end = max(int(torch.searchsorted(cum, done + max_pairs, right=True)), start + 1)
-        line, local = _expand(counts[start:end])
+        line, local, _ = _expand(counts[start:end])
         line = line + start
-        yield line, _take(s_lo, line) + local
+        yield line, _take(s_lo, line) + local, None
         done = int(cum[end - 1])
         start = end
-
-
-def _lines(l_lo: torch.Tensor, l_hi: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Items with inclusive line ranges (M,) -> (item (R,), line (R,)), one entry per item line."""
-    item, local = _expand((l_hi - l_lo + 1).clamp(min=0))
-    return item, _take(l_lo, item) + local
-
-
-def _pixel_range(lo: torch.Tensor, hi: torch.Tensor, n: int, eps: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
-    """Continuous extents (M,) -> inclusive integer pixel ranges clipped to [0, n - 1]."""
-    a = torch.ceil((lo - eps).clamp(-1, n)).long().clamp(min=0)
-    b = torch.floor((hi + eps).clamp(-1, n)).long().clamp(max=n - 1)
-    return a, b
 
 
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -336,12 +371,15 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 _SPAN_EPS = 1e-4  # pixels: spans are widened by this so a pixel centre on a shared edge is never lost
 
 
-def _rasterize(tri, grad, inv_z, view, N, h, w, max_pairs):
+def _rasterize(tri, grad, inv_z, view, N, h, w, max_pairs, capacity=None, drawn=None):
     """Hard z-buffer over M triangles: tri (M, 3, 2) crop-grid vertices, grad (M, 3, 2)
     barycentric gradients (b_k(p) = [k == 0] + grad_k . (p - tri[:, 0])), inv_z (M, 3) =
     (d/dx, d/dy, value at vertex 0) of 1/z, view (M,) in [0, N) -> keys (N*h*w,) long:
     for a covered pixel, quantised depth * M + index of its front-most triangle;
-    _NO_KEY where nothing covers it.
+    _NO_KEY where nothing covers it; and how many lines and pixels it enumerated (0-dim).
+    `drawn` (M,) bool: only these triangles are drawn. `capacity` (a `Capacity`): lines and
+    pixels go into slots of that fixed number (no wait on the device; what does not fit is
+    lost, which the counts returned tell).
 
     Scanline enumeration: a triangle is cut into lines (rows, or columns for tall
     triangles) and each line's pixel span is solved exactly from the three edge
@@ -353,7 +391,7 @@ def _rasterize(tri, grad, inv_z, view, N, h, w, max_pairs):
     hw = h * w
     keys = torch.full((N * hw,), _NO_KEY, dtype=torch.long, device=tri.device)
     if M == 0:
-        return keys
+        return keys, keys.new_zeros(()), keys.new_zeros(())
     lo, hi = tri.amin(1), tri.amax(1)  # (M, 2)
     tall = (hi[:, 1] - lo[:, 1]) > (hi[:, 0] - lo[:, 0])  # scan columns
     t3 = tall[:, None].expand(-1, 3)
@@ -370,7 +408,11 @@ def _rasterize(tri, grad, inv_z, view, N, h, w, max_pairs):
     n_span = torch.where(tall, h, w)
     l_lo = torch.ceil(torch.maximum(lo_l - _SPAN_EPS, torch.full_like(lo_l, -1.0))).long().clamp(min=0)
     l_hi = torch.minimum(torch.floor(hi_l + _SPAN_EPS).clamp(max=1e6).long(), n_line - 1)
-    item, line = _lines(l_lo, l_hi)  # (R,)
+    line_counts = (l_hi - l_lo + 1).clamp(min=0)
+    if drawn is not None:
+        line_counts = torch.where(drawn, line_counts, 0)
+    item, line, line_used = _expand(line_counts, capacity and capacity.lines)  # (R,): one entry per triangle line
+    line = _take(l_lo, item) + line
     # one gather of every per-triangle number a line needs: (R, 13)
     table = torch.cat([g_s.T, g_l.T, torch.stack([o_l, o_s, lo_s, hi_s, iz_l, iz_s, inv_z[:, 2]])])  # (13, M)
     r = _take_cols(table, item)  # (13, R)
@@ -389,21 +431,27 @@ def _rasterize(tri, grad, inv_z, view, N, h, w, max_pairs):
     rn_span = _take(n_span, item)
     s_lo = torch.ceil(s_min.clamp(min=-1.0)).long().clamp(min=0)
     s_hi = torch.minimum(torch.floor(s_max.clamp(max=1e6)).long(), rn_span - 1)
+    if line_used is not None:
+        s_hi = torch.where(line_used, s_hi, s_lo - 1)  # slots beyond the lines: no pixels
     rt = _take(tall, item)
     per_line = torch.stack([riz_c + riz_l * dl, riz_s, ro_s])  # (3, R): 1/z = [0] + [1] (s - [2]) along the line
     ints = torch.stack([_take(view, item) * hw + torch.where(rt, line, line * w), torch.where(rt, w, 1), item])
-    for row, s in _span_pixels(s_lo, s_hi, max_pairs):
+    for row, s, used in _span_pixels(s_lo, s_hi, max_pairs, capacity and capacity.pixels):
         f = _take_cols(per_line, row)
         i = _take_cols(ints, row)
         invz = f[0] + f[1] * (s.to(f.dtype) - f[2])
         zq = (_DEPTH_KEY_SCALE / invz.clamp(min=1e-6)).round().clamp(max=1e12).long()
-        keys.scatter_reduce_(0, i[0] + s * i[1], zq * M + i[2], "amin")
-    return keys
+        at, key = i[0] + s * i[1], zq * M + i[2]
+        if used is not None:
+            at, key = torch.where(used, at, 0), torch.where(used, key, _NO_KEY)
+        keys.scatter_reduce_(0, at, key, "amin")
+    return keys, line_counts.sum(), (s_hi - s_lo + 1).clamp(min=0).sum()
 
 
-def _contours(topo: MeshTopology, rendered: torch.Tensor, front: torch.Tensor):
+def _contours(topo: MeshTopology, rendered: torch.Tensor, front: torch.Tensor, capacity: int | None = None):
     """Contour edges per view: rendered, front (N, F) bool -> (view (K,), a (K,), b (K,), third (K,))
-    vertex indices of each contour edge and of a rendered face's opposite vertex (inner side).
+    vertex indices of each contour edge and of a rendered face's opposite vertex (inner side),
+    used (`_expand`: K = `capacity` slots, or None) and how many there are (0-dim).
 
     A contour edge bounds the drawn surface: some but not all of its faces are drawn
     (front/back), it is a mesh boundary, or (without culling) its drawn faces fold."""
@@ -419,21 +467,28 @@ def _contours(topo: MeshTopology, rendered: torch.Tensor, front: torch.Tensor):
     opp = topo.opposite.reshape(-1)[None].expand(N, -1)  # (N, 3F)
     third = torch.full((N, E), -1, dtype=torch.long, device=rendered.device)
     third.scatter_reduce_(1, fe[None].expand(N, -1), torch.where(r3, opp, -1), "amax")
-    view, e = contour.nonzero(as_tuple=True)
-    return view, _take(topo.edges[:, 0], e), _take(topo.edges[:, 1], e), _take(third.reshape(-1), view * E + e)
+    flat = contour.reshape(-1)
+    if capacity is None:
+        at, used = flat.nonzero(as_tuple=True)[0], None
+    else:
+        at, _, used = _expand(flat.long(), capacity)
+    view, e = torch.div(at, E, rounding_mode="floor"), at % E
+    return (view, _take(topo.edges[:, 0], e), _take(topo.edges[:, 1], e), _take(third.reshape(-1), at), used,
+            flat.sum())
 
 
-def _outline_pieces(A, Bv, T, view, covered, h, w, band, piece_px):
-    """Cut contour edges (end points A, Bv (K, 2), inner-side point T (K, 2), view (K,))
-    into pieces of at most `piece_px` pixels, keeping only what lies within `band` of
-    the crop -> (edge (P,), t0 (P,), t1 (P,), inner (P,)): piece = A + [t0, t1] (Bv - A);
-    inner: the piece lies inside the silhouette, judged by the hard coverage (N*h*w,)
-    one pixel beyond its midpoint on the outer side (a chair leg's outline seen
-    against the seat; a covered pixel must not measure its distance to it)."""
+def _outline_pieces(A, Bv, T, view, covered, h, w, band, piece_px, used=None, capacity=None):
+    """Cut contour edges (end points A, Bv (K, 2), inner-side point T (K, 2), view (K,),
+    `used` (K,) or None: all) into pieces of at most `piece_px` pixels, keeping only what lies
+    within `band` of the crop -> (edge (P,), t0 (P,), t1 (P,), inner (P,), used, count):
+    piece = A + [t0, t1] (Bv - A); inner: the piece lies inside the silhouette, judged by the
+    hard coverage (N*h*w,) one pixel beyond its midpoint on the outer side (a chair leg's
+    outline seen against the seat; a covered pixel must not measure its distance to it);
+    used: `_expand`'s, with P = `capacity` slots or None; count: pieces wanted (0-dim)."""
     d = Bv - A
     # clip each segment to the crop widened by the band (Liang-Barsky), t in [ta, tb]
-    lo = torch.tensor([-band, -band], dtype=A.dtype, device=A.device)
-    hi = torch.tensor([w - 1 + band, h - 1 + band], dtype=A.dtype, device=A.device)
+    lo = torch.full((2,), -band, dtype=A.dtype, device=A.device)
+    hi = torch.where(torch.arange(2, device=A.device) == 0, w - 1 + band, h - 1 + band).to(A.dtype)  # x, y
     safe = torch.where(d == 0, torch.ones_like(d), d)
     t_lo, t_hi = (lo - A) / safe, (hi - A) / safe  # (K, 2)
     inside = (A >= lo) & (A <= hi)  # needed where the segment runs parallel to a side
@@ -444,8 +499,10 @@ def _outline_pieces(A, Bv, T, view, covered, h, w, band, piece_px):
     length = d.norm(dim=-1)
     span = (tb - ta).clamp(min=0)
     n = torch.where(tb > ta, torch.ceil(span * length / piece_px).clamp(min=1), torch.zeros_like(span)).long()
-    edge, j = _expand(n)
-    nf = _take(n, edge).to(A.dtype)
+    if used is not None:
+        n = torch.where(used, n, 0)
+    edge, j, pieces_used = _expand(n, capacity)
+    nf = _take(n, edge).clamp(min=1).to(A.dtype)
     ta_e, span_e = _take(ta, edge), _take(span, edge)
     t0 = ta_e + span_e * j.to(A.dtype) / nf
     t1 = ta_e + span_e * (j + 1).to(A.dtype) / nf
@@ -456,13 +513,16 @@ def _outline_pieces(A, Bv, T, view, covered, h, w, band, piece_px):
     m = (mid + nrm).round().clamp(-1, max(h, w)).long()
     in_crop = (m[:, 0] >= 0) & (m[:, 0] < w) & (m[:, 1] >= 0) & (m[:, 1] < h)
     pix = _take(view, edge) * (h * w) + m[:, 1].clamp(0, h - 1) * w + m[:, 0].clamp(0, w - 1)
-    return edge, t0, t1, _take(covered, pix) & in_crop
+    return edge, t0, t1, _take(covered, pix) & in_crop, pieces_used, n.sum()
 
 
-def _nearest_outline_pieces(A, Bv, inner, view, covered, h, w, band, max_pairs):
+def _nearest_outline_pieces(A, Bv, inner, view, covered, h, w, band, max_pairs, used=None, window=None):
     """For each output pixel within `band` of an outline piece (end points A, Bv (P, 2),
     view (P,)): the nearest piece that bounds the silhouette, i.e. any piece for an
-    uncovered pixel, a piece not `inner` for a covered one -> (pixel (Q,), piece (Q,)).
+    uncovered pixel, a piece not `inner` for a covered one -> (pixel (Q,), piece (Q,), found).
+    found is None; or, with `used` (P,) (only these pieces count) and `window` (the side of
+    the pixel square each piece tests, at least what its length needs), Q is every pixel,
+    found (Q,) marks those within `band` of a piece, and nothing waits on the device.
 
     Pieces are short (about `band` long), so each one tests a fixed square window of
     pixels around it: a dense (P, n, n) computation, no ragged enumeration."""
@@ -470,15 +530,16 @@ def _nearest_outline_pieces(A, Bv, inner, view, covered, h, w, band, max_pairs):
     keys = torch.full_like(covered, _NO_KEY, dtype=torch.long)
     K = view.numel()
     if K == 0:
-        return keys.new_zeros(0), keys.new_zeros(0)
+        return keys.new_zeros(0), keys.new_zeros(0), None
     lo = torch.minimum(A, Bv) - band  # (P, 2) window corner (continuous)
-    n = int(torch.ceil((torch.maximum(A, Bv) - lo).max()).item() + band) + 1  # window side
-    n = max(min(n, max(h, w) + 1), 1)
+    if window is None:
+        window = int(torch.ceil((torch.maximum(A, Bv) - lo).max()).item() + band) + 1
+    n = max(min(window, max(h, w) + 1), 1)  # window side
     x0 = torch.ceil(lo.clamp(-n - 1.0, max(h, w) + 1.0)).long()  # (P, 2) first pixel of the window
     d = Bv - A
     inv_L2 = 1 / (d * d).sum(-1).clamp(min=1e-12)
     step = torch.arange(n, device=A.device)
-    per_chunk = max(1, max_pairs // (n * n))
+    per_chunk = K if used is not None else max(1, max_pairs // (n * n))
     for a in range(0, K, per_chunk):
         b = min(K, a + per_chunk)
         px = x0[a:b, 0, None, None] + step[None, None, :]  # (p, 1, n)
@@ -492,10 +553,14 @@ def _nearest_outline_pieces(A, Bv, inner, view, covered, h, w, band, max_pairs):
         inside = ((px >= 0) & (px < w)) & ((py >= 0) & (py < h))  # (p, n, n)
         pixel = (view[a:b, None, None] * hw + py.clamp(0, h - 1) * w + px.clamp(0, w - 1)).reshape(-1)
         ok = inside & (dist <= band) & ~(covered.index_select(0, pixel).view_as(dist) & inner[a:b, None, None])
+        if used is not None:
+            ok &= used[a:b, None, None]
         key = (dist * _DIST_KEY_SCALE).round().long() * K + torch.arange(a, b, device=A.device)[:, None, None]
         keys.scatter_reduce_(0, pixel, torch.where(ok, key, _NO_KEY).reshape(-1), "amin")
+    if used is not None:
+        return torch.arange(keys.numel(), device=keys.device), keys % K, keys != _NO_KEY
     pixel = (keys != _NO_KEY).nonzero(as_tuple=True)[0]
-    return pixel, _take(keys, pixel) % K
+    return pixel, _take(keys, pixel) % K, None
 
 
 # ----------------------------------------------------------------------------- differentiable parts
@@ -507,14 +572,17 @@ def _pixel_xy(pixel: torch.Tensor, h: int, w: int, dtype) -> tuple[torch.Tensor,
     return (r % w).to(dtype), torch.div(r, w, rounding_mode="floor").to(dtype)
 
 
-def _triangle_planes(tri: torch.Tensor, tz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _triangle_planes(tri: torch.Tensor, tz: torch.Tensor, drawn: torch.Tensor | None = None):
     """tri (M, 3, 2) projected vertices, tz (M, 3) their camera z -> barycentric gradients
     grad (M, 3, 2), b_k(p) = [k == 0] + grad_k . (p - tri[:, 0]), and inv_z (M, 3) =
     (d/dx, d/dy, value at vertex 0) of 1/z, which is linear in the image for a planar
-    face (perspective-correct interpolation)."""
+    face (perspective-correct interpolation). `drawn` (M,): triangles not drawn, perhaps
+    degenerate, get a unit area, so that no inf reaches the gradients."""
     vn, vnn = tri.roll(-1, dims=1), tri.roll(-2, dims=1)  # (M, 3, 2) v_{k+1}, v_{k+2}
     dl = vn - vnn  # b_k(p) = cross(v_{k+1} - p, v_{k+2} - p) / area2: gradient (dl_y, -dl_x) / area2
     area2 = _cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # (M,)
+    if drawn is not None:
+        area2 = torch.where(drawn, area2, 1.0)
     grad = torch.stack([dl[..., 1], -dl[..., 0]], -1) / area2[:, None, None]
     iz = 1 / tz  # (M, 3)
     return grad, torch.cat([(grad * iz[..., None]).sum(1), iz[:, :1]], -1)
@@ -552,6 +620,7 @@ def render(
     max_radius: float = 3.0,
     max_pairs: int | None = None,
     piece_px: float | None = None,
+    capacity: Capacity | None = None,
 ) -> RenderOutput:
     """Soft silhouette and depth of a mesh in B frames x C views.
 
@@ -568,7 +637,8 @@ def render(
     temporaries stay in the allocator's cache and are measurably faster, 4M on
     CUDA); more work is done in chunks. `piece_px`: contour edges are judged
     outline / inside the silhouette in pieces of at most this many output pixels
-    (default: the band).
+    (default: the band). `capacity`: fixed shapes (a `Capacity`): the same result while
+    `out.needed` fits, nothing read back from the device, and the same shapes every call.
     """
     topo = mesh if isinstance(mesh, MeshTopology) else MeshTopology.from_faces(mesh)
     if topo.faces.device != vertices_world.device:
@@ -579,8 +649,8 @@ def render(
             f"rendering: vertices must be a float (B, V, 3) or (V, 3) tensor, got {tuple(vertices_world.shape)}"
         )
     B, V, _ = verts.shape
-    if topo.faces.numel() and int(topo.faces.max()) >= V:
-        raise ValueError(f"rendering: faces index vertex {int(topo.faces.max())} but only {V} vertices given")
+    if topo.vertices > V:
+        raise ValueError(f"rendering: faces index vertex {topo.vertices - 1} but only {V} vertices given")
     if sigma <= 0:
         raise ValueError(f"rendering: sigma must be positive, got {sigma}")
     cameras = _cameras_like(cameras, verts)
@@ -610,6 +680,9 @@ def render(
     z = z.reshape(C, B, V).transpose(0, 1).reshape(N * V)
 
     faces = topo.faces
+    F = faces.shape[0]
+    fixed = capacity is not None and F > 0
+    capacity = capacity if fixed else None
     band = band_sigmas * sigma
     chunk = max_pairs or MAX_PAIRS.get(device.type, MAX_PAIRS["cuda"])
     with torch.no_grad():
@@ -624,39 +697,49 @@ def render(
         rendered = _take(valid_v, all_idx).reshape(N, -1, 3).all(-1) & (area2.abs() > 1e-10)
         if cull_backfaces:
             rendered &= front
-        c_view, c_a, c_b, c_t = _contours(topo, rendered, front)
-        f_flat = rendered.reshape(-1).nonzero(as_tuple=True)[0]  # (M,) index into N*F
+        c_view, c_a, c_b, c_t, c_used, n_contours = _contours(topo, rendered, front, capacity and capacity.contours)
+        drawn = rendered.reshape(-1) if fixed else None
+        # (M,) index into N*F: the drawn faces, or with fixed shapes every face (`drawn` masks them)
+        f_flat = torch.arange(N * F, device=device) if fixed else rendered.reshape(-1).nonzero(as_tuple=True)[0]
         f_view = torch.div(f_flat, faces.shape[0], rounding_mode="floor")
         f_idx = _take(all_idx.reshape(-1, 3), f_flat).reshape(-1)  # (3M,) rows of uv / z
         tri_d = _take(tri_all.reshape(-1, 3, 2), f_flat)
 
     # per-face planes with autograd (M faces), then the hard z-buffer on their detached values
     tri = _take(uv, f_idx).reshape(-1, 3, 2)  # (M, 3, 2)
-    grad, inv_z = _triangle_planes(tri, _take(z, f_idx).reshape(-1, 3))
+    grad, inv_z = _triangle_planes(tri, _take(z, f_idx).reshape(-1, 3), drawn)
     with torch.no_grad():
-        keys = _rasterize(tri_d, grad.detach(), inv_z.detach(), f_view, N, h, w, chunk)
+        keys, n_lines, n_pixels = _rasterize(tri_d, grad.detach(), inv_z.detach(), f_view, N, h, w, chunk, capacity,
+                                             drawn)
         covered = keys != _NO_KEY
-        d_pixel = covered.nonzero(as_tuple=True)[0]
+        # (Q,) pixels with depth: the covered ones, or with fixed shapes all (`covered` masks them)
+        d_pixel = torch.arange(N * hw, device=device) if fixed else covered.nonzero(as_tuple=True)[0]
         d_face = _take(keys, d_pixel) % max(f_view.numel(), 1)
     qx, qy = _pixel_xy(d_pixel, h, w, dtype)
     o = _take(tri[:, 0], d_face)  # (Q, 2) the face's vertex 0
     iz = _take(inv_z, d_face)  # (Q, 3)
-    depth_vals = 1 / (iz[:, 2] + iz[:, 0] * (qx - o[:, 0]) + iz[:, 1] * (qy - o[:, 1]))
-    depth = torch.zeros(N * hw, dtype=dtype, device=device).index_put((d_pixel,), depth_vals)
+    inv_depth = iz[:, 2] + iz[:, 0] * (qx - o[:, 0]) + iz[:, 1] * (qy - o[:, 1])
+    if fixed:
+        depth = torch.where(covered, 1 / torch.where(covered, inv_depth, 1.0), 0.0)
+    else:
+        depth = torch.zeros(N * hw, dtype=dtype, device=device).index_put((d_pixel,), 1 / inv_depth)
 
     # soft silhouette: signed distance to the nearest outline piece
     A = _take(uv, c_view * V + c_a)  # (K, 2) contour edges, with autograd
     Bv = _take(uv, c_view * V + c_b)
     with torch.no_grad():
         inner_side = _take(uv_d, c_view * V + c_t)  # (K, 2) a vertex on each contour edge's face side
-        p_edge, p_t0, p_t1, p_inner = _outline_pieces(
-            A.detach(), Bv.detach(), inner_side, c_view, covered, h, w, band, piece_px or max(band, 2.0)
-        )
+        piece = piece_px or max(band, 2.0)
+        p_edge, p_t0, p_t1, p_inner, p_used, n_pieces = _outline_pieces(
+            A.detach(), Bv.detach(), inner_side, c_view, covered, h, w, band, piece, c_used,
+            capacity and capacity.pieces)
         PA = _take(A.detach(), p_edge)
         PD = _take(Bv.detach(), p_edge) - PA
-        s_pixel, s_piece = _nearest_outline_pieces(
-            PA + p_t0[:, None] * PD, PA + p_t1[:, None] * PD, p_inner, _take(c_view, p_edge), covered, h, w, band, chunk
-        )
+        # with fixed shapes, each piece's window is as wide as the longest piece could need
+        window = int(math.ceil(piece + band) + band) + 2 if fixed else None
+        s_pixel, s_piece, s_found = _nearest_outline_pieces(
+            PA + p_t0[:, None] * PD, PA + p_t1[:, None] * PD, p_inner, _take(c_view, p_edge), covered, h, w, band, chunk,
+            p_used, window)
         s_edge, s_t0, s_t1 = _take(p_edge, s_piece), _take(p_t0, s_piece), _take(p_t1, s_piece)
     EA, EB = _take(A, s_edge), _take(Bv, s_edge)
     ED = EB - EA
@@ -664,13 +747,17 @@ def render(
     signed = torch.where(_take(covered, s_pixel), dist, -dist).clamp(-band, band)
     lo = 1 / (1 + math.exp(band_sigmas))  # sigmoid(-band / sigma)
     soft = (torch.sigmoid(signed / sigma) - lo) / (1 - 2 * lo)
-    silhouette = covered.to(dtype).index_put((s_pixel,), soft)
+    if fixed:
+        silhouette = torch.where(s_found, soft, covered.to(dtype))
+    else:
+        silhouette = covered.to(dtype).index_put((s_pixel,), soft)
 
     return RenderOutput(
         silhouette=silhouette.reshape(B, C, h, w),
         depth=depth.reshape(B, C, h, w),
         coverage=covered.reshape(B, C, h, w),
         crops=crops,
+        needed=torch.stack([n_lines, n_pixels, n_contours, n_pieces]),
     )
 
 

@@ -56,9 +56,9 @@ from intercap.energies.losses import (
     occlusion_weight,
     rotation_6d_to_matrix,
 )
-from intercap.energies.optim import AdamRows
+from intercap.energies import optim
 from intercap.geometry.cameras import Cameras, pixel_rays, project
-from intercap.geometry.rendering import MeshTopology, crop_observation, render
+from intercap.geometry.rendering import Capacity, MeshTopology, crop_observation, render
 from intercap.geometry.segmentation import (
     background_depth,
     clean_mask,
@@ -202,6 +202,8 @@ class ObjectTracker:
         self.sizes = [(c.height, c.width) for c in session.cameras]
         self.session_masks = cfg.use_session_masks  # the session's mask where a view and frame has one ...
         self.use_masks = cfg.use_session_masks and not session.missing("mask_object").any()  # ... or everywhere
+        # renders of fixed shapes (`rendering.Capacity`), each fit step one replayed CUDA graph
+        self.fixed_shapes = self.device.type == "cuda" and cfg.cuda_graphs
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
@@ -356,12 +358,13 @@ class ObjectTracker:
         visible = occlusion_weight(rendered_depth, obs_depth, self.cfg.occluder_margin_m)
         return torch.maximum(visible, (obs_mask > 0.5).to(visible.dtype))
 
-    def energy_terms(self, obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops):
+    def energy_terms(self, obs_mask, obs_depth, obs_known, view_weight, R, t_c, crops, capacity=None):
         """E_O of P poses, each against its own windows: (total, silhouette, depth) (P,) and the
-        render output. obs_* (P, C, h, w), view_weight (P, C), R (P, 3, 3), t_c (P, 3), crops (P, C, 4)."""
+        render output. obs_* (P, C, h, w), view_weight (P, C), R (P, 3, 3), t_c (P, 3), crops (P, C, 4);
+        capacity: the renderer's fixed shapes (`rendering.Capacity`) or None."""
         cfg = self.cfg
         out = render(self.vertices_c @ R.transpose(1, 2) + t_c[:, None], self.topology, self.cameras, crops,
-                     size=(cfg.crop_size, cfg.crop_size), sigma=cfg.sigma_px)
+                     size=(cfg.crop_size, cfg.crop_size), sigma=cfg.sigma_px, capacity=capacity)
         visible = self._visible(out.depth.detach(), obs_depth, obs_mask)  # (P, C, h, w)
         view_weight = view_weight[:, :, None, None]
         sil = object_silhouette(out.silhouette, obs_mask, visible * obs_known * view_weight)
@@ -395,7 +398,11 @@ class ObjectTracker:
         """Minimise E_O from each request's pose, (obs, R0, t0, iterations or None for
         `iterations`), all P fits in one render per step. Adam moves each parameter on its own, so
         each fit keeps its own moments, step count, step sizes, early stopping and budget: the
-        result is each fit's alone, at the launches of one (a GPU's time follows the launches)."""
+        result is each fit's alone, at the launches of one (a GPU's time follows the launches).
+        With `fixed_shapes` every step renders all P poses in fixed shapes, sized from the first
+        poses' render and grown when a step's counts outgrow them, and on CUDA replays one
+        recorded graph (`optim.gradient_evaluator`); the rows that are done are rendered but
+        not moved."""
         cfg = self.cfg
         P, dev = len(requests), self.device
         crops = self.crops_for([(obs, R0, t0) for obs, R0, t0, _ in requests])  # (P, C, 4)
@@ -415,14 +422,34 @@ class ObjectTracker:
             return self.energy_terms(pick(obs_mask), pick(obs_depth), pick(obs_known), pick(view_weight),
                                      rotation_6d_to_matrix(pick(r6)), pick(t_c), pick(crops))
 
-        adam = AdamRows([r6, t_c], [cfg.lr_rotation, cfg.lr_translation], P)
+        capacity, evaluate = None, None
+
+        def energies_and_counts():
+            """Fixed shapes: E_O of all P poses followed by the render's counts, one tensor to read."""
+            total, _, _, out = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight,
+                                                 rotation_6d_to_matrix(r6), t_c, crops, capacity)
+            return torch.cat([total, out.needed.to(total.dtype)])
+
+        adam = optim.AdamRows([r6, t_c], [cfg.lr_rotation, cfg.lr_translation], P)
         best_value, best_r6, best_t = np.full(P, np.inf), r6.detach().clone(), t_c.detach().clone()
         stalled, decays, used = np.zeros(P, int), np.zeros(P, int), np.zeros(P, int)
         done = budget <= used
         while not done.all():
             live = np.flatnonzero(~done)
-            total = energy(None if len(live) == P else torch.as_tensor(live, device=dev))[0]
-            value = total.detach().cpu().numpy()
+            if self.fixed_shapes:
+                if evaluate is None:
+                    with torch.no_grad():
+                        capacity = Capacity.fitting(energy()[3].needed)
+                    evaluate = optim.gradient_evaluator([r6, t_c], energies_and_counts, graph=True)
+                values, (r6.grad, t_c.grad) = evaluate()
+                values = values.cpu().numpy()
+                if not capacity.holds(values[P:]):  # the poses moved out of the shapes: size them again, step again
+                    evaluate = None
+                    continue
+                value, total = values[live], None
+            else:
+                total = energy(None if len(live) == P else torch.as_tensor(live, device=dev))[0]
+                value = total.detach().cpu().numpy()
             # No relative improvement of `stop_tolerance` for `stop_patience` steps: Adam is circling the
             # minimum at its step size; go back to the best pose with smaller steps, `lr_decays` times, then stop.
             stalled[live] = np.where(value > best_value[live] * (1 - cfg.stop_tolerance), stalled[live] + 1, 0)
@@ -442,8 +469,9 @@ class ObjectTracker:
                 with torch.no_grad():
                     r6[at], t_c[at] = best_r6[at], best_t[at]
             if not stop.all():
-                steps = total if not stop.any() else total[torch.as_tensor(np.flatnonzero(~stop), device=dev)]
-                steps.sum().backward()
+                if total is not None:  # the eager path's gradients, of the rows that step
+                    steps = total if not stop.any() else total[torch.as_tensor(np.flatnonzero(~stop), device=dev)]
+                    steps.sum().backward()
                 adam.step(live[~stop])
             used[live] += 1
             done |= used >= budget

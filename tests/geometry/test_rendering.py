@@ -445,3 +445,92 @@ def test_rendered_crop_matches_cropped_full_rendering():
     depth_obs = crop_observation(full.depth[0], crops[0], size, "nearest")
     both = small.coverage[0] & (depth_obs > 0)
     assert (small.depth[0] - depth_obs)[both].abs().median() < 0.002
+
+
+def _render_both(verts, mesh, cams, crops, size, **kw):
+    """The compact render and the fixed-shape one sized from it (`Capacity.fitting`), each with
+    the vertex gradient of a weighted sum of its silhouette and depth."""
+    from intercap.geometry.rendering import Capacity
+
+    outs = []
+    for capacity in (None, "fitting"):
+        v = verts.detach().clone().requires_grad_(True)
+        if capacity == "fitting":
+            capacity = Capacity.fitting(outs[0][0].needed)
+        out = render(v, mesh, cams, crops, size, capacity=capacity, **kw)
+        weight = torch.linspace(0.5, 1.5, out.silhouette.numel()).reshape(out.silhouette.shape)
+        ((out.silhouette * weight).sum() + (out.depth * weight).sum()).backward()
+        outs.append((out, v.grad))
+    return outs
+
+
+@pytest.mark.parametrize("name", ["box", "cylinder", "bars"])
+def test_fixed_shapes_render_exactly_what_the_compact_render_does(name):
+    """With a `Capacity` (no host waits, same shapes every call: what a CUDA graph records), the
+    coverage and depth are the compact render's bit for bit, the silhouette and the vertex
+    gradients to float rounding (the CPU's vectorised exp rounds by position in the array); the
+    counts say when a capacity is too small."""
+    from intercap.geometry.rendering import Capacity
+
+    if name == "bars":  # contours inside the silhouette (inner pieces), 3 frames
+        front = trimesh.creation.box(extents=(0.04, 0.04, 0.30))
+        back = trimesh.creation.box(extents=(0.30, 0.02, 0.12))
+        front.apply_translation([0.0, -0.08, 0.0])
+        base = trimesh.util.concatenate([front, back])
+    else:
+        base = MESHES[name]()
+    cams = make_cameras(LENS_DIST)
+    frames = [posed(base, angle=0.4 + 0.7 * b, offset=(0.02 * b, -0.01 * b, 0.0)).vertices for b in range(3)]
+    verts = torch.as_tensor(np.stack(frames), dtype=torch.float32)
+    size = (48, 64)
+    crops = object_crops(verts, cams, size, margin=0.3)
+    crops[1, 0] += 20.0  # a frame whose object leaves its crop on one side
+    (ref, ref_grad), (fix, fix_grad) = _render_both(verts, MeshTopology.from_faces(base.faces), cams, crops, size,
+                                                    sigma=0.7)
+    assert torch.equal(ref.needed, fix.needed) and ref.needed.min() > 0
+    assert torch.equal(ref.coverage, fix.coverage) and torch.equal(ref.depth, fix.depth)
+    assert torch.allclose(ref.silhouette, fix.silhouette, rtol=0, atol=1e-6)
+    assert torch.allclose(ref_grad, fix_grad, rtol=1e-5, atol=1e-5)
+    assert Capacity.fitting(ref.needed).holds(fix.needed)
+    lines, pixels, contours, pieces = ref.needed.tolist()
+    assert not Capacity(lines, pixels - 1, contours, pieces).holds(ref.needed)
+    short = render(verts, base.faces, cams, crops, size, sigma=0.7, capacity=Capacity(lines, pixels // 2, contours, pieces))
+    assert torch.equal(short.needed, ref.needed)  # the counts still tell what was wanted
+    assert short.coverage.sum() < ref.coverage.sum()
+
+
+def test_fixed_shapes_handle_empty_and_degenerate_views():
+    """Views that see nothing, a vertex on a camera's plane, zero-area crops: finite outputs and
+    gradients, equal to the compact render's."""
+    cams = make_cameras(SMALL_DIST)
+    verts = torch.as_tensor(posed(MESHES["box"]()).vertices, dtype=torch.float32)
+    T0 = cams.T_world_from_cam[0]
+    on_plane = verts - verts[0] + T0[:3, 3] + 0.1 * T0[:3, 0]
+    far = torch.tensor([[0.0, 0.0, 20.0, 20.0], [280.0, 220.0, 300.0, 240.0]])
+    for v, crops in ((verts, far), (on_plane, None), (verts, torch.zeros(2, 4)), (2 * cams.centers.mean(0) - verts, None)):
+        (ref, ref_grad), (fix, fix_grad) = _render_both(v, MeshTopology.from_faces(MESHES["box"]().faces), cams,
+                                                        crops, (32, 32), sigma=0.7)
+        assert torch.isfinite(fix.silhouette).all() and torch.isfinite(fix.depth).all()
+        assert torch.isfinite(fix_grad).all()
+        assert torch.allclose(ref.silhouette, fix.silhouette, rtol=0, atol=1e-6) and torch.equal(ref.depth, fix.depth)
+        assert torch.allclose(ref_grad, fix_grad, rtol=1e-5, atol=1e-5)
+
+
+def test_fixed_shapes_render_waits_on_nothing():
+    """No value read back, no data-dependent shape, nothing copied from the host: a CUDA graph
+    can record it (`tests/host_waits.py`)."""
+    from host_waits import HostWaits
+
+    from intercap.geometry.rendering import Capacity
+
+    cams = make_cameras(LENS_DIST)
+    base = MESHES["cylinder"]()
+    topo = MeshTopology.from_faces(base.faces)
+    verts = torch.as_tensor(np.stack([posed(base, angle=a).vertices for a in (0.3, 0.9)]), dtype=torch.float32)
+    crops = object_crops(verts, cams, (48, 48))
+    capacity = Capacity.fitting(render(verts, topo, cams, crops, (48, 48)).needed)
+    v = verts.clone().requires_grad_(True)
+    with HostWaits() as waits:
+        out = render(v, topo, cams, crops, (48, 48), capacity=capacity)
+        torch.autograd.grad((out.silhouette.sum() + out.depth.sum()), v)
+    assert waits.seen == []

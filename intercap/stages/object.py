@@ -38,6 +38,7 @@ to check.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import threading
 from dataclasses import dataclass
@@ -204,6 +205,7 @@ class ObjectTracker:
         self.use_masks = cfg.use_session_masks and not session.missing("mask_object").any()  # ... or everywhere
         # renders of fixed shapes (`rendering.Capacity`), each fit step one replayed CUDA graph
         self.fixed_shapes = self.device.type == "cuda" and cfg.cuda_graphs
+        self._fixed_fits: dict[int, FixedShapeFits] = {}  # by the number of poses fitted at once
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
@@ -399,10 +401,9 @@ class ObjectTracker:
         `iterations`), all P fits in one render per step. Adam moves each parameter on its own, so
         each fit keeps its own moments, step count, step sizes, early stopping and budget: the
         result is each fit's alone, at the launches of one (a GPU's time follows the launches).
-        With `fixed_shapes` every step renders all P poses in fixed shapes, sized from the first
-        poses' render and grown when a step's counts outgrow them, and on CUDA replays one
-        recorded graph (`optim.gradient_evaluator`); the rows that are done are rendered but
-        not moved."""
+        With `fixed_shapes` the steps evaluate `FixedShapeFits` (all P poses rendered in fixed
+        shapes; on CUDA one recorded graph, replayed by every later call with P poses too); the
+        rows that are done are rendered but not moved."""
         cfg = self.cfg
         P, dev = len(requests), self.device
         crops = self.crops_for([(obs, R0, t0) for obs, R0, t0, _ in requests])  # (P, C, 4)
@@ -415,6 +416,15 @@ class ObjectTracker:
         t_c = torch.as_tensor(np.stack([self._to_centre(R, t) for _, R, t, _ in requests]), dtype=torch.float32,
                               device=dev).clone().requires_grad_(True)
         crops = crops.to(dev)  # cut on the CPU (`windows`), rendered where the fit runs
+        stalled, decays, used = np.zeros(P, int), np.zeros(P, int), np.zeros(P, int)
+        done = budget <= used
+        fixed = None
+        if self.fixed_shapes and not done.all():
+            if P not in self._fixed_fits:
+                self._fixed_fits[P] = FixedShapeFits(self, P)
+            fixed = self._fixed_fits[P]
+            fixed.load(obs_mask, obs_depth, obs_known, view_weight, crops, r6, t_c)
+            r6, t_c = fixed.r6, fixed.t_c
 
         def energy(rows=None):
             """E_O of the fits `rows` (an index tensor; None: all), as (P,) tensors and the render."""
@@ -422,40 +432,21 @@ class ObjectTracker:
             return self.energy_terms(pick(obs_mask), pick(obs_depth), pick(obs_known), pick(view_weight),
                                      rotation_6d_to_matrix(pick(r6)), pick(t_c), pick(crops))
 
-        capacity, evaluate = None, None
-
-        def energies_and_counts():
-            """Fixed shapes: E_O of all P poses followed by the render's counts, one tensor to read."""
-            total, _, _, out = self.energy_terms(obs_mask, obs_depth, obs_known, view_weight,
-                                                 rotation_6d_to_matrix(r6), t_c, crops, capacity)
-            return torch.cat([total, out.needed.to(total.dtype)])
-
         adam = optim.AdamRows([r6, t_c], [cfg.lr_rotation, cfg.lr_translation], P)
         best_value, best_r6, best_t = np.full(P, np.inf), r6.detach().clone(), t_c.detach().clone()
-        stalled, decays, used = np.zeros(P, int), np.zeros(P, int), np.zeros(P, int)
-        done = budget <= used
         while not done.all():
             live = np.flatnonzero(~done)
-            if self.fixed_shapes:
-                if evaluate is None:
-                    with torch.no_grad():
-                        capacity = Capacity.fitting(energy()[3].needed)
-                    evaluate = optim.gradient_evaluator([r6, t_c], energies_and_counts, graph=True)
-                values, (r6.grad, t_c.grad) = evaluate()
-                values = values.cpu().numpy()
-                if not capacity.holds(values[P:]):  # the poses moved out of the shapes: size them again, step again
-                    evaluate = None
-                    continue
-                value, total = values[live], None
+            if fixed is not None:
+                values, total = fixed.evaluate()[0][live], None  # gradients in r6.grad, t_c.grad
             else:
                 total = energy(None if len(live) == P else torch.as_tensor(live, device=dev))[0]
-                value = total.detach().cpu().numpy()
+                values = total.detach().cpu().numpy()
             # No relative improvement of `stop_tolerance` for `stop_patience` steps: Adam is circling the
             # minimum at its step size; go back to the best pose with smaller steps, `lr_decays` times, then stop.
-            stalled[live] = np.where(value > best_value[live] * (1 - cfg.stop_tolerance), stalled[live] + 1, 0)
-            better = value < best_value[live]
+            stalled[live] = np.where(values > best_value[live] * (1 - cfg.stop_tolerance), stalled[live] + 1, 0)
+            better = values < best_value[live]
             if better.any():
-                best_value[live[better]] = value[better]
+                best_value[live[better]] = values[better]
                 at = torch.as_tensor(live[better], device=dev)
                 best_r6[at], best_t[at] = r6.detach()[at], t_c.detach()[at]
             stop = stalled[live] >= cfg.stop_patience
@@ -475,19 +466,25 @@ class ObjectTracker:
                 adam.step(live[~stop])
             used[live] += 1
             done |= used >= budget
-        with torch.no_grad():
-            total, _, _, out = energy()
-            worse = total.cpu().numpy() > best_value  # the last step went up: the best pose seen
-            if worse.any():
-                at = torch.as_tensor(np.flatnonzero(worse), device=dev)
-                r6[at], t_c[at] = best_r6[at], best_t[at]
+
+        def final():
+            """(E_O (P,), confidence (P,)) at the current poses."""
+            if fixed is not None:
+                return fixed.evaluate()
+            with torch.no_grad():
                 total, _, _, out = energy()
-            # IoU where the label is known and nothing stands in front of the rendered surface:
-            # a hand over the object hides it from the mask without the pose being wrong.
-            seen = (obs_known > 0.25) & (self._visible(out.depth, obs_depth, obs_mask) > 0.5)
-            confidence = self._iou(out.coverage & seen, (obs_mask > 0.5) & seen, view_weight > 0)
+                return total.cpu().numpy(), self.confidence(out, obs_mask, obs_depth, obs_known, view_weight).cpu().numpy()
+
+        total, confidence = final()
+        worse = total > best_value  # the last step went up: the best pose seen
+        if worse.any():
+            at = torch.as_tensor(np.flatnonzero(worse), device=dev)
+            with torch.no_grad():
+                r6[at], t_c[at] = best_r6[at], best_t[at]
+            total, confidence = final()
+        with torch.no_grad():
             R = rotation_6d_to_matrix(r6).double().cpu().numpy()
-            t_c, total = t_c.double().cpu().numpy(), total.cpu().numpy()
+            t_c = t_c.double().cpu().numpy()
         return [Fit(R=R[p], t=self._from_centre(R[p], t_c[p]), energy=float(total[p]), confidence=float(confidence[p]))
                 for p in range(P)]
 
@@ -505,12 +502,19 @@ class ObjectTracker:
         return obs, refined
 
     @staticmethod
-    def _iou(rendered: torch.Tensor, observed: torch.Tensor, has_view: torch.Tensor) -> np.ndarray:
+    def _iou(rendered: torch.Tensor, observed: torch.Tensor, has_view: torch.Tensor) -> torch.Tensor:
         """(P,) mean silhouette IoU over each fit's views that see the object (0 where none does)."""
         inter = (rendered & observed).flatten(2).sum(2).float()
         union = (rendered | observed).flatten(2).sum(2).float().clamp(min=1)
         views = has_view.float()
-        return ((inter / union * views).sum(1) / views.sum(1).clamp(min=1)).cpu().numpy()
+        return (inter / union * views).sum(1) / views.sum(1).clamp(min=1)
+
+    def confidence(self, out, obs_mask, obs_depth, obs_known, view_weight) -> torch.Tensor:
+        """(P,) silhouette IoU of renders `out` where the label is known and nothing stands in
+        front of the rendered surface: a hand over the object hides it from the mask without
+        the pose being wrong."""
+        seen = (obs_known > 0.25) & (self._visible(out.depth.detach(), obs_depth, obs_mask) > 0.5)
+        return self._iou(out.coverage & seen, (obs_mask > 0.5) & seen, view_weight > 0)
 
     # -- initialisation ----------------------------------------------------------------------
     def object_points(self, obs: Observation) -> np.ndarray:
@@ -620,6 +624,54 @@ class ObjectTracker:
                    key=lambda f: f.energy)
         (fit,) = yield [(obs, best.R, best.t, None)]
         return fit
+
+
+class FixedShapeFits:
+    """The object fits of P poses at once in fixed shapes (`ObjectTracker.fixed_shapes`): input
+    tensors that each `fit_many` call copies into, and one evaluation of E_O, its gradients, the
+    confidence and the render's counts recorded on them (`optim.gradient_evaluator`: on CUDA one
+    graph, recorded once and replayed by every later call). The render's capacity is sized from
+    the first poses and grows when a pose outgrows it (the graph is then recorded again)."""
+
+    def __init__(self, tracker: ObjectTracker, P: int):
+        self.tracker, self.P, self.capacity, self._evaluate = tracker, P, None, None
+        C, n, dev = len(tracker.sizes), tracker.cfg.crop_size, tracker.device
+        self.inputs = [torch.zeros(P, C, n, n, device=dev) for _ in range(3)]  # mask, depth, known windows
+        self.inputs += [torch.zeros(P, C, device=dev), torch.zeros(P, C, 4, device=dev)]  # view weights, crops
+        self.r6 = torch.zeros(P, 6, device=dev, requires_grad=True)
+        self.t_c = torch.zeros(P, 3, device=dev, requires_grad=True)
+
+    @torch.no_grad()
+    def load(self, *values) -> None:
+        """Copy a call's windows, view weights, crops and starting poses into the recorded tensors."""
+        for target, value in zip(self.inputs + [self.r6, self.t_c], values):
+            target.copy_(value)
+
+    def _outputs(self) -> torch.Tensor:
+        """E_O (P,), confidence (P,) and the render's counts (4,), one tensor to read back."""
+        obs_mask, obs_depth, obs_known, view_weight, crops = self.inputs
+        total, _, _, out = self.tracker.energy_terms(obs_mask, obs_depth, obs_known, view_weight,
+                                                     rotation_6d_to_matrix(self.r6), self.t_c, crops, self.capacity)
+        confidence = self.tracker.confidence(out, obs_mask, obs_depth, obs_known, view_weight)
+        return torch.cat([total, confidence.to(total.dtype), out.needed.to(total.dtype)])
+
+    def evaluate(self) -> tuple[np.ndarray, np.ndarray]:
+        """(E_O (P,), confidence (P,)) at the current poses, their gradients in r6.grad and t_c.grad."""
+        P = self.P
+        while True:
+            if self._evaluate is None:
+                with torch.no_grad():  # room for the current poses' render (and never less than before)
+                    needed = self.tracker.energy_terms(*self.inputs[:4], rotation_6d_to_matrix(self.r6), self.t_c,
+                                                       self.inputs[4])[3].needed
+                fitting = Capacity.fitting(needed)
+                self.capacity = fitting if self.capacity is None else Capacity(
+                    *np.maximum(dataclasses.astuple(fitting), dataclasses.astuple(self.capacity)).tolist())
+                self._evaluate = optim.gradient_evaluator([self.r6, self.t_c], self._outputs, graph=True)
+            values, (self.r6.grad, self.t_c.grad) = self._evaluate()
+            values = values.cpu().numpy()
+            if self.capacity.holds(values[2 * P:]):
+                return values[:P], values[P:2 * P]
+            self._evaluate = None  # a pose outgrew the shapes: size them again, evaluate again
 
 
 def run_searches(tracker: ObjectTracker, searches: list) -> list:

@@ -317,22 +317,25 @@ def test_chunks_side_by_side_resume_where_each_stopped(box_session, tmp_path):
 
 
 def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_tracker, monkeypatch):
-    """`fixed_shapes` (what a GPU records as one CUDA graph per fit): every step renders all poses
-    in fixed shapes. The fits end where the eager ones do, also when a pose outgrows its shapes
-    (sized here without slack, so they are sized again), and the evaluations after the first issue
-    nothing a GPU would wait for."""
+    """`fixed_shapes` (what a GPU records as one CUDA graph): every step renders all poses in
+    fixed shapes. The fits end where the eager ones do, also when a pose outgrows its shapes
+    (sized here without slack, so they are sized again) and when a later call with as many poses
+    reuses the recorded evaluation; the evaluations after the first issue nothing a GPU would wait
+    for."""
     from host_waits import watch_evaluations
 
     from intercap.geometry import rendering
 
     tracker, session, truth = sample_tracker
     rng = np.random.default_rng(5)
-    requests = []
-    for frame, iterations in ((4, None), (16, 8), (25, None)):
-        R, t = truth["R"][frame], truth["t"][frame]
-        turn = axis_rotation(rng.normal(size=3) / np.sqrt(3), 8.0)
-        requests.append((tracker.observe(frame, (R, t)), turn @ R, t + rng.normal(scale=0.01, size=3), iterations))
-    eager = tracker.fit_many(requests)
+    rounds = []
+    for frames in ((4, 16, 25), (7, 13, 28)):
+        requests = []
+        for frame, iterations in zip(frames, (None, 8, None)):
+            R, t = truth["R"][frame], truth["t"][frame]
+            turn = axis_rotation(rng.normal(size=3) / np.sqrt(3), 8.0)
+            requests.append((tracker.observe(frame, (R, t)), turn @ R, t + rng.normal(scale=0.01, size=3), iterations))
+        rounds.append((requests, tracker.fit_many(requests)))
     sized = []
     fitting = rendering.Capacity.fitting.__func__
 
@@ -341,11 +344,15 @@ def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_trac
         return fitting(cls, needed, 0.0, 1)
 
     monkeypatch.setattr(tracker, "fixed_shapes", True)
+    monkeypatch.setattr(tracker, "_fixed_fits", {})
     monkeypatch.setattr(rendering.Capacity, "fitting", classmethod(tight))
     waits, evaluators = watch_evaluations(monkeypatch)
-    fixed = tracker.fit_many(requests)
-    assert len(sized) > 1 and len(evaluators) == len(sized)  # outgrown and sized again
-    assert sum(len(calls) for calls in evaluators) > 10 and waits.seen == [], waits.seen
-    for a, b in zip(eager, fixed):
-        assert abs(a.energy - b.energy) < 1e-5 * max(1.0, abs(a.energy)) and abs(a.confidence - b.confidence) < 1e-4
-        assert np.abs(a.R - b.R).max() < 1e-4 and np.abs(a.t - b.t).max() < 1e-5
+    for k, (requests, eager) in enumerate(rounds):
+        fixed = tracker.fit_many(requests)
+        if k == 0:
+            assert len(sized) > 1 and len(evaluators) == len(sized)  # outgrown and sized again
+        for a, b in zip(eager, fixed):
+            assert abs(a.energy - b.energy) < 1e-5 * max(1.0, abs(a.energy)) and abs(a.confidence - b.confidence) < 1e-4
+            assert np.abs(a.R - b.R).max() < 1e-4 and np.abs(a.t - b.t).max() < 1e-5
+    assert list(tracker._fixed_fits) == [3] and len(evaluators) == len(sized)  # one set of shapes, grown as needed
+    assert sum(len(calls) for calls in evaluators) > 20 and waits.seen == [], waits.seen

@@ -14,6 +14,8 @@ nearest points are close but are not one surface (tools/bench_calibration_check)
 from __future__ import annotations
 
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -451,12 +453,15 @@ def check_calibration(
         pairs = neighbour_pairs(camera_centers)
     plane_radius = plane_radius if plane_radius > 0 else max(5 * voxel_size, 0.10)
     centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
-    frames = [[_view_frame(p, voxel_size, plane_radius, name, centre) for p in view]
-              for view, name, centre in zip(per_frame, names, centers)]
-    return [pair_agreement(frames[a], frames[b], names[a], names[b], max_distance,
-                           min_constraint=min_constraint, block_size=block_size, k_sigma=k_sigma,
-                           min_mm=min_mm, min_deg=min_deg, iterations=iterations)
-            for a, b in pairs]
+    # views x frames, then pairs, in threads: k-d trees, LAPACK and large numpy loops let go of the GIL
+    with ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, len(names) * len(per_frame[0])))) as pool:
+        frames = [[pool.submit(_view_frame, p, voxel_size, plane_radius, name, centre) for p in view]
+                  for view, name, centre in zip(per_frame, names, centers)]
+        frames = [[f.result() for f in view] for view in frames]
+        agreements = [pool.submit(pair_agreement, frames[a], frames[b], names[a], names[b], max_distance,
+                                  min_constraint=min_constraint, block_size=block_size, k_sigma=k_sigma,
+                                  min_mm=min_mm, min_deg=min_deg, iterations=iterations) for a, b in pairs]
+        return [f.result() for f in agreements]
 
 
 def suspect_cameras(results: list[PairAgreement]) -> list[str]:

@@ -86,10 +86,19 @@ class Observation:
     depth: np.ndarray  # float32 metres, 0 = missing
     has_view: np.ndarray  # (C,) bool: depth present and an object mask found
     known: np.ndarray  # float32, 1 where the mask's label is known (derived masks know nothing where depth is missing)
+    _boxes: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)  # `mask_box`'s, by view
 
     @property
     def visible_views(self) -> int:
         return int(self.has_view.sum())
+
+    def mask_box(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """View c's mask pixels' bounds, (x, y) lowest and highest (the view must see the object)."""
+        if c not in self._boxes:
+            inside = self.mask[c] > 0.5
+            xs, ys = np.flatnonzero(inside.any(0)), np.flatnonzero(inside.any(1))
+            self._boxes[c] = np.array([xs[0], ys[0]]), np.array([xs[-1], ys[-1]])
+        return self._boxes[c]
 
 
 @dataclass
@@ -158,13 +167,14 @@ def hard_silhouettes(vertices_world: np.ndarray, faces: np.ndarray, cameras: Cam
     return out
 
 
-def crop_windows(images: np.ndarray, crops: torch.Tensor, size, modes: tuple[str, ...]) -> list[torch.Tensor]:
-    """`crop_observation` of images (K, C, H, W), image k with modes[k], on crops (C, 4) -> K x (C, h, w).
+def crop_windows(images, crops: torch.Tensor, size, modes: tuple[str, ...]) -> list[torch.Tensor]:
+    """`crop_observation` of K images (C, H, W) (a list, or stacked), image k with modes[k], on crops
+    (C, 4) -> K x (C, h, w).
 
     Same values as cropping the full images, but only a window around each crop is
     copied and integrated (the integral image of 4 whole 640x576 views per call was
     a third of a frame's time); pixels outside the image still read 0."""
-    K, C, H, W = images.shape
+    K, (C, H, W) = len(images), images[0].shape
     box = crops.double().numpy()
     lo = np.clip(np.floor(box[:, :2]) - 2, 0, [W, H]).astype(int)  # (C, 2) window start (x, y)
     hi = np.clip(np.ceil(box[:, 2:]) + 3, 0, [W, H]).astype(int)
@@ -173,7 +183,8 @@ def crop_windows(images: np.ndarray, crops: torch.Tensor, size, modes: tuple[str
     window = np.zeros((K, C, hs, ws), np.float32)
     for c in range(C):
         (x0, y0), (x1, y1) = lo[c], hi[c]
-        window[:, c, : y1 - y0, : x1 - x0] = images[:, c, y0:y1, x0:x1]
+        for k in range(K):
+            window[k, c, : y1 - y0, : x1 - x0] = images[k][c, y0:y1, x0:x1]
     shift = torch.as_tensor(np.concatenate([lo, lo], 1), dtype=crops.dtype)
     # A window cut short by the image border ends where the image does; zeros padded
     # beyond a window that was not cut are never reached by its crop's footprint.
@@ -345,9 +356,8 @@ class ObjectTracker:
             for c, (H, W) in enumerate(self.sizes):
                 lo, hi = lows[c, p], highs[c, p]
                 if obs.has_view[c]:
-                    ys, xs = np.nonzero(obs.mask[c] > 0.5)
-                    lo = np.minimum(lo, [xs.min(), ys.min()])
-                    hi = np.maximum(hi, [xs.max(), ys.max()])
+                    mask_lo, mask_hi = obs.mask_box(c)
+                    lo, hi = np.minimum(lo, mask_lo), np.maximum(hi, mask_hi)
                 lo, hi = np.maximum(lo, [-W, -H]), np.minimum(hi, [2 * W, 2 * H])
                 centre, half = (lo + hi) / 2, max((hi - lo).max() / 2 * (1 + cfg.crop_margin), 8.0)
                 boxes[p, c] = [centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half]
@@ -380,7 +390,7 @@ class ObjectTracker:
         """The observation cut to `crops` (C, 4): the object's share of the known pixels, depth and
         the known fraction, (C, h, w) each, on the fitting device."""
         size = (self.cfg.crop_size, self.cfg.crop_size)
-        obs_mask, obs_depth, obs_known = crop_windows(np.stack([obs.mask * obs.known, obs.depth, obs.known]), crops,
+        obs_mask, obs_depth, obs_known = crop_windows([obs.mask * obs.known, obs.depth, obs.known], crops,
                                                       size, ("area", "nearest", "area"))
         # The object's share of the pixels whose label is known: where derived masks lose half of a
         # dark chair's depth to dropouts, the chair still fills its cells, at half the weight.

@@ -73,6 +73,7 @@ class ObjectConfig:
     side_by_side: int = 1  # chunks of the take one process tracks at once, their fits in one render per step
     side_by_side_gpu: int = 8  # on CUDA (`side_by_side`: a GPU's step costs its kernel launches, not its size)
     cuda_graphs: bool = True  # on CUDA a fit's renders keep fixed shapes and each step replays one recorded graph
+    read_ahead: bool = True  # on CUDA, with session masks: the next frame is read while this one is fitted
     stop_tolerance: float = 1e-3  # relative E_O decrease that counts as progress
     stop_patience: int = 3  # steps without progress before the step size shrinks (or the fit stops)
     stop_patience_dense: int = 2  # stop_patience at run.dense_fps and above (30 fps: 14 % fewer renders, same ADD-S;

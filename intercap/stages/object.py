@@ -41,6 +41,7 @@ import contextlib
 import dataclasses
 import logging
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -217,6 +218,7 @@ class ObjectTracker:
         # renders of fixed shapes (`rendering.Capacity`), each fit step one replayed CUDA graph
         self.fixed_shapes = self.device.type == "cuda" and cfg.cuda_graphs
         self._fixed_fits: dict[int, FixedShapeFits] = {}  # by the number of poses fitted at once
+        self._reader, self._ahead = None, {}  # `read_ahead`'s thread and its observations, by frame
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
@@ -240,10 +242,27 @@ class ObjectTracker:
                 self.backgrounds = backgrounds
         return self.backgrounds
 
+    def read_ahead(self, frame_id: int) -> None:
+        """Start reading frame `frame_id`'s observation in a background thread, for `observe` to
+        take, where that does not wait for a prediction (the session's masks everywhere), on a GPU
+        (`object.read_ahead`), whose fits leave the cores to spare. On the CPU the fits use the
+        cores: one process with two threads tracked the 150-frame bench 9 % slower reading ahead."""
+        if not (self.cfg.read_ahead and self.use_masks and self.device.type == "cuda") or frame_id in self._ahead:
+            return
+        if self._reader is None:
+            self._reader = ThreadPoolExecutor(max_workers=1)
+        self._ahead[frame_id] = self._reader.submit(self._read, frame_id, None, 0.0)
+
     def observe(self, frame_id: int, predicted, reach_m: float = 0.0) -> Observation:
         """Depth and object masks of all views (masks derived when the session has none).
 
         `reach_m`: how far the object may have moved from `predicted` (derived masks only)."""
+        if frame_id in self._ahead:  # read ahead (`read_ahead`: session masks, the same observation)
+            return self._ahead.pop(frame_id).result()
+        return self._read(frame_id, predicted, reach_m)
+
+    def _read(self, frame_id: int, predicted, reach_m: float) -> Observation:
+        """`observe`'s reading."""
         C = len(self.sizes)
         H, W = max(s[0] for s in self.sizes), max(s[1] for s in self.sizes)
         masks = np.zeros((C, H, W), np.float32)
@@ -750,6 +769,8 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path 
                      for j in trusted_at[-5:] if j > 0 and history[j - 1] is not None]
             reach = max(steps, default=0.0) * (i - k)
         obs = tracker.observe(frame_id, predicted, reach)
+        if i + 1 < T:
+            tracker.read_ahead(int(frame_ids[i + 1]))  # read while this frame is fitted
         if predicted is not None and not tracker.use_masks and obs.visible_views < cfg.min_views:
             # Nothing near where the object should be: look for it anywhere before calling it lost.
             predicted = None

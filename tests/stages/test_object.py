@@ -356,3 +356,31 @@ def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_trac
             assert np.abs(a.R - b.R).max() < 1e-4 and np.abs(a.t - b.t).max() < 1e-5
     assert list(tracker._fixed_fits) == [3] and len(evaluators) == len(sized)  # one set of shapes, grown as needed
     assert sum(len(calls) for calls in evaluators) > 20 and waits.seen == [], waits.seen
+
+
+def test_read_ahead_gives_the_observation_read_in_place(box_session, monkeypatch):
+    """`ObjectTracker.read_ahead` (a GPU run reads the next frame while this one is fitted): with
+    the session's masks, `observe` takes what was read ahead, the same as reading it then; off on
+    the CPU and where masks must be derived round a prediction."""
+    from types import SimpleNamespace
+
+    session = Session.load(box_session)
+    tracker = ObjectTracker(session, load_config().object, session.object.load_mesh())
+    frame = int(session.frame_ids[3])
+    tracker.read_ahead(frame)
+    assert tracker._ahead == {}  # the CPU fits use the cores
+    device = tracker.device
+    monkeypatch.setattr(tracker, "device", SimpleNamespace(type="cuda"))
+    tracker.read_ahead(frame)
+    assert list(tracker._ahead) == [frame]
+    monkeypatch.setattr(tracker, "device", device)
+    ahead = tracker.observe(frame, None)
+    assert tracker._ahead == {}
+    direct = tracker.observe(frame, None)
+    for name in ("mask", "depth", "known", "has_view"):
+        assert np.array_equal(getattr(ahead, name), getattr(direct, name))
+    derived = ObjectTracker(session, load_config(overrides=["object.use_session_masks=false"]).object,
+                            session.object.load_mesh())
+    monkeypatch.setattr(derived, "device", SimpleNamespace(type="cuda"))
+    derived.read_ahead(frame)
+    assert derived._ahead == {}

@@ -307,14 +307,7 @@ def hand_contact(hand_vertices: torch.Tensor, grasp_points: torch.Tensor, graspi
     nearest graspable point, in frames where the hand grasps (W,) -> (W,), metres^2.
 
     The pairs are chosen without gradient and only they are measured with it: the same value and
-    gradient (a minimum's flows to its argument only) without differentiating all N x G distances.
-    On the CPU only the grasping frames are measured (half the global stage's windows on the
-    150-frame bench); a GPU measures all, as finding them would make it wait."""
-    if not hand_vertices.is_cuda and not bool(grasping.all()):
-        rows = grasping.nonzero(as_tuple=True)[0]
-        measured = hand_contact(hand_vertices[rows], grasp_points[rows], grasping[rows], count) if len(rows) else None
-        return grasping.new_zeros(grasping.shape) if measured is None else torch.zeros_like(grasping).index_put(
-            (rows,), measured)
+    gradient (a minimum's flows to its argument only) without differentiating all N x G distances."""
     with torch.no_grad():
         distance, nearest_point = torch.cdist(hand_vertices, grasp_points).min(-1)  # (W, N)
         chosen = torch.topk(distance, min(count, distance.shape[-1]), dim=-1, largest=False).indices  # (W, k)

@@ -163,6 +163,7 @@ class PersonPoints:
         self._background = None
         self._lock = threading.Lock()
         self._object = None
+        self._T = None  # the cameras' T_world_from_cam as numpy, once
         poses = per_frame_result(out_dir, "object", "object_poses.npz")
         if derives and session.object is not None and poses.exists():
             data = np.load(poses)
@@ -225,34 +226,43 @@ class PersonPoints:
 
     def batch(self, frame_ids: np.ndarray, keypoints: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """(B, C, P, 3) world points and (B, C, P) validity; P = cfg.points_per_view, a seeded random
-        subset of the masked pixels with depth."""
+        subset of the masked pixels with depth (`frame`'s, the frames in IO threads)."""
         B, C, P = len(frame_ids), self.session.num_cameras, self.cfg.points_per_view
         points = np.zeros((B, C, P, 3), np.float32)
         valid = np.zeros((B, C, P), bool)
-        T = self.cameras.T_world_from_cam.cpu().numpy()
 
-        def pick_frame(b: int) -> None:  # the frames in IO threads, each with its own seeded stream
-            f = int(frame_ids[b])
-            rng = np.random.default_rng([self.cfg.seed, f])
-            for c in range(C):
-                depth = self.session.read_depth(c, f)
-                if depth is None:
-                    continue
-                mask = self.mask(c, f, depth, keypoints[b, c])
-                if mask is None:
-                    continue
-                pick = np.flatnonzero((mask & (depth > 0.2)).reshape(-1))
-                if len(pick) < self.cfg.min_points:
-                    continue
-                pick = rng.choice(pick, size=min(P, len(pick)), replace=False)
-                z = depth.reshape(-1)[pick]
-                xy = self.rays[c][pick].numpy()
-                cam = np.concatenate([xy * z[:, None], z[:, None]], 1)
-                points[b, c, :len(pick)] = cam @ T[c, :3, :3].T + T[c, :3, 3]
-                valid[b, c, :len(pick)] = True
+        def pick_frame(b: int) -> None:
+            points[b], valid[b] = self.frame(int(frame_ids[b]), keypoints[b])
 
         in_threads(pick_frame, range(B))
         return torch.from_numpy(points), torch.from_numpy(valid)
+
+    def frame(self, frame_id: int, keypoints: np.ndarray, depths: list | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """One frame's (C, P, 3) world points and (C, P) validity, its own seeded stream; keypoints
+        (C, K, 3); `depths`: its views' depth maps when already read (else read here)."""
+        C, P = self.session.num_cameras, self.cfg.points_per_view
+        points = np.zeros((C, P, 3), np.float32)
+        valid = np.zeros((C, P), bool)
+        if self._T is None:
+            self._T = self.cameras.T_world_from_cam.cpu().numpy()
+        rng = np.random.default_rng([self.cfg.seed, frame_id])
+        for c in range(C):
+            depth = self.session.read_depth(c, frame_id) if depths is None else depths[c]
+            if depth is None:
+                continue
+            mask = self.mask(c, frame_id, depth, keypoints[c])
+            if mask is None:
+                continue
+            pick = np.flatnonzero((mask & (depth > 0.2)).reshape(-1))
+            if len(pick) < self.cfg.min_points:
+                continue
+            pick = rng.choice(pick, size=min(P, len(pick)), replace=False)
+            z = depth.reshape(-1)[pick]
+            xy = self.rays[c][pick].numpy()
+            cam = np.concatenate([xy * z[:, None], z[:, None]], 1)
+            points[c, :len(pick)] = cam @ self._T[c, :3, :3].T + self._T[c, :3, 3]
+            valid[c, :len(pick)] = True
+        return points, valid
 
 
 def keypoint_views(keypoints: torch.Tensor, cfg) -> torch.Tensor:

@@ -253,16 +253,17 @@ class ObjectTracker:
             self._reader = ThreadPoolExecutor(max_workers=1)
         self._ahead[frame_id] = self._reader.submit(self._read, frame_id, None, 0.0)
 
-    def observe(self, frame_id: int, predicted, reach_m: float = 0.0) -> Observation:
+    def observe(self, frame_id: int, predicted, reach_m: float = 0.0, depths: list | None = None) -> Observation:
         """Depth and object masks of all views (masks derived when the session has none).
 
-        `reach_m`: how far the object may have moved from `predicted` (derived masks only)."""
+        `reach_m`: how far the object may have moved from `predicted` (derived masks only);
+        `depths`: the views' depth maps when already read."""
         if frame_id in self._ahead:  # read ahead (`read_ahead`: session masks, the same observation)
             return self._ahead.pop(frame_id).result()
-        return self._read(frame_id, predicted, reach_m)
+        return self._read(frame_id, predicted, reach_m, depths)
 
-    def _read(self, frame_id: int, predicted, reach_m: float) -> Observation:
-        """`observe`'s reading."""
+    def _read(self, frame_id: int, predicted, reach_m: float, given: list | None = None) -> Observation:
+        """`observe`'s reading; `given`: the depth maps already read."""
         C = len(self.sizes)
         H, W = max(s[0] for s in self.sizes), max(s[1] for s in self.sizes)
         masks = np.zeros((C, H, W), np.float32)
@@ -272,7 +273,7 @@ class ObjectTracker:
 
         def read_view(c: int) -> None:  # the views in IO threads (`in_threads`)
             h, w = self.sizes[c]
-            depth = self.session.read_depth(c, frame_id)
+            depth = self.session.read_depth(c, frame_id) if given is None else given[c]
             if depth is None:
                 return
             depths[c, :h, :w] = depth

@@ -61,14 +61,16 @@ def exact_keypoints(model, params: BodyParams, cameras: Cameras) -> torch.Tensor
     return torch.cat([pix, torch.ones(B, C, 67, 1)], -1)
 
 
-def window_data(keypoints, R, t, shape, grasping, C) -> WindowData:
-    """Keypoints only: no depth points, the object held by nothing but the terms under test."""
+def window_data(keypoints, R, t, shape, grasping, C, rows: bool = False) -> WindowData:
+    """Keypoints only: no depth points, the object held by nothing but the terms under test.
+    `rows`: the grasping frames found beforehand, as `Observations.window` finds them."""
     from intercap.stages.body import BodyObservations
 
     W = len(R)
     obs = BodyObservations(np.arange(W), keypoints, torch.zeros(W, C, 1, 3), torch.zeros(W, C, 1, dtype=torch.bool))
     reference = shape.samples @ R.transpose(1, 2) + t[:, None]
-    return WindowData(obs, None, None, reference, torch.zeros(W), grasping)
+    grasp_rows = tuple(torch.as_tensor(np.flatnonzero(grasping[:, h].numpy())) for h in range(2)) if rows else None
+    return WindowData(obs, None, None, reference, torch.zeros(W), grasping, grasp_rows=grasp_rows)
 
 
 def hand_gap(model, params, R, t, shape, side):
@@ -142,11 +144,16 @@ def test_a_window_evaluation_never_waits_on_the_gpu(sample, model, monkeypatch):
     t = torch.as_tensor(poses["t"][frame:frame + W], dtype=torch.float32)
     cameras = Cameras.from_infos(sample.cameras)
     fitter = GlobalFitter(model, cameras, cfg.body, cfg.global_, shape, load_ground_from_gt(), sample.fps)
-    grasping = torch.tensor([[0, 1]] * W, dtype=torch.float32)
-    data = window_data(exact_keypoints(model, body, cameras), R, t, shape, grasping, len(cameras))
+    grasping = torch.tensor([[0, 1], [0, 1], [1, 1], [0, 0]], dtype=torch.float32)
+    data = window_data(exact_keypoints(model, body, cameras), R, t, shape, grasping, len(cameras), rows=True)
     waits, evaluators = watch_evaluations(monkeypatch)
-    fitter.fit_window(body, R, t + R @ shape.centroid, 1, data)
+    fitted, R_fit, centre, _ = fitter.fit_window(body, R, t + R @ shape.centroid, 1, data)
     assert len(evaluators) == 1 and len(evaluators[0]) > 3 and waits.seen == [], waits.seen
+    # E_C' over the grasping frames found beforehand is E_C' over every frame weighted by grasping
+    every = window_data(exact_keypoints(model, body, cameras), R, t, shape, grasping, len(cameras))
+    fitted_every, R_every, centre_every, _ = fitter.fit_window(body, R, t + R @ shape.centroid, 1, every)
+    assert torch.equal(centre, centre_every) and torch.equal(R_fit, R_every)
+    assert torch.equal(fitted.body_pose, fitted_every.body_pose) and torch.equal(fitted.right_hand_pose, fitted_every.right_hand_pose)
 
 
 def load_ground_from_gt():

@@ -4,7 +4,8 @@
 # cache included), the pipeline runs on CUDA with the profiler, then on the CPU with
 # CPU_WORKERS workers. First, unless TESTS_S=0, tests/test_cuda.py (a broken CUDA path shows
 # there in a minute or two; TESTS names other test ids); CPU_S=0 skips the CPU run. Logs, metrics
-# and the profile go to $OUT.
+# and the profile go to $OUT. GPU_ARGS: more arguments of the GPU run; GPU2_ARGS: a second GPU
+# run on the same session with these (an A/B on one machine).
 #   TESTS_S=200 FRAMES=150 GPU_S=420 CPU_S=230 CPU_WORKERS=8 bash tools/gpu_bench.sh
 T0=$(date +%s)
 for f in .gl/*.deb; do dpkg -x "$f" /; done; ldconfig
@@ -35,7 +36,10 @@ if [ "${TESTS_S:-200}" != 0 ]; then
         > "$OUT/test_cuda.log" 2>&1
     echo "test_cuda: rc $? after $(( $(date +%s) - T0 )) s"; tail -n 15 "$OUT/test_cuda.log"
 fi
-bench gpu "${GPU_S:-420}" --set run.device=cuda --profile
+bench gpu "${GPU_S:-420}" --set run.device=cuda --profile ${GPU_ARGS:-}
+session=$(ls -d /tmp/k_gpu/*/ | grep -v _out/ | head -1)  # later runs take the same session
+if [ -n "${GPU2_ARGS:-}" ]; then  # an A/B run on the same machine, e.g. GPU2_ARGS="--set object.cuda_graphs=false"
+    bench gpu2 "${GPU_S:-420}" --session "$session" --set run.device=cuda $GPU2_ARGS
+fi
 [ "${CPU_S:-230}" = 0 ] && exit 0  # CPU_S=0: no CPU run
-session=$(ls -d /tmp/k_gpu/*/ | grep -v _out/ | head -1)  # the CPU run takes the same session
 bench cpu "${CPU_S:-230}" --session "$session" --set run.workers="${CPU_WORKERS:-8}"

@@ -376,7 +376,8 @@ def _apply(node: Any, updates: dict, prefix: str = "") -> None:
 
 
 def load_config(yaml_path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
-    """Defaults, then the YAML file, then ``section.key=value`` overrides."""
+    """Defaults, then the YAML file, then ``section.key=value`` overrides (``key=value`` for the
+    `run` section's settings: ``device=cuda``)."""
     cfg = Config()
     if yaml_path is not None:
         try:
@@ -391,6 +392,8 @@ def load_config(yaml_path: str | Path | None = None, overrides: list[str] | None
             raise ConfigError(f"override {item!r} is not of the form section.key=value")
         dotted, value = item.split("=", 1)
         *sections, leaf = dotted.strip().split(".")
+        if not sections and leaf in {f.name for f in dataclasses.fields(RunConfig)}:
+            sections = ["run"]  # a bare key names a `run` setting: `--set device=cuda`
         nested: dict = {leaf: value}
         for section in reversed(sections):
             nested = {section: nested}

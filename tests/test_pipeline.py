@@ -83,6 +83,9 @@ def test_config_overrides_and_errors(tmp_path):
         load_config(overrides=["prepare.voxel=1"])
     with pytest.raises(ConfigError, match="expected a number"):
         load_config(overrides=["prepare.voxel_size_m=big"])
+    assert load_config(overrides=["device=cuda"]).run.device == "cuda"  # a bare key: a `run` setting
+    with pytest.raises(ConfigError, match="unknown config key 'voxel_size_m'"):
+        load_config(overrides=["voxel_size_m=0.02"])
     yaml_file = tmp_path / "c.yaml"
     yaml_file.write_text("prepare:\n  pixel_stride: 4\n")
     assert load_config(yaml_file).prepare.pixel_stride == 4

@@ -93,12 +93,12 @@ class Observation:
     def visible_views(self) -> int:
         return int(self.has_view.sum())
 
-    def mask_box(self, c: int) -> tuple[np.ndarray, np.ndarray]:
-        """View c's mask pixels' bounds, (x, y) lowest and highest (the view must see the object)."""
+    def mask_box(self, c: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """View c's mask pixels' bounds, (x, y) lowest and highest; None when it has none."""
         if c not in self._boxes:
             inside = self.mask[c] > 0.5
             xs, ys = np.flatnonzero(inside.any(0)), np.flatnonzero(inside.any(1))
-            self._boxes[c] = np.array([xs[0], ys[0]]), np.array([xs[-1], ys[-1]])
+            self._boxes[c] = (np.array([xs[0], ys[0]]), np.array([xs[-1], ys[-1]])) if len(xs) else None
         return self._boxes[c]
 
 
@@ -346,10 +346,11 @@ class ObjectTracker:
         T = self.cameras.T_world_from_cam[c].double().cpu().numpy()
         return cam @ T[:3, :3].T + T[:3, 3]
 
-    def _points(self, c: int, depth: np.ndarray) -> np.ndarray:
-        """World points (N, 3) of the pixels of one view's depth map with a measurement."""
+    def _points(self, c: int, depth: np.ndarray, x0: int = 0, y0: int = 0) -> np.ndarray:
+        """World points (N, 3) of the pixels of one view's depth map with a measurement; `depth`
+        may be a window of the view whose first pixel is (x0, y0)."""
         ys, xs = np.nonzero((depth > 0.1) & (depth < 10.0))
-        return self._pixel_points(c, ys, xs, depth[ys, xs].astype(np.float64))
+        return self._pixel_points(c, ys + y0, xs + x0, depth[ys, xs].astype(np.float64))
 
     # -- pose helpers ---------------------------------------------------------------------
     def world_vertices_np(self, R, t) -> np.ndarray:
@@ -375,7 +376,7 @@ class ObjectTracker:
         for p, (obs, _, _) in enumerate(poses):
             for c, (H, W) in enumerate(self.sizes):
                 lo, hi = lows[c, p], highs[c, p]
-                if obs.has_view[c]:
+                if obs.has_view[c] and obs.mask_box(c) is not None:
                     mask_lo, mask_hi = obs.mask_box(c)
                     lo, hi = np.minimum(lo, mask_lo), np.maximum(hi, mask_hi)
                 lo, hi = np.maximum(lo, [-W, -H]), np.minimum(hi, [2 * W, 2 * H])
@@ -549,8 +550,13 @@ class ObjectTracker:
     # -- initialisation ----------------------------------------------------------------------
     def object_points(self, obs: Observation) -> np.ndarray:
         """World points of the object masks of all views, (N, 3)."""
-        clouds = [self._points(c, obs.depth[c, :h, :w] * (obs.mask[c, :h, :w] > 0.5))
-                  for c, (h, w) in enumerate(self.sizes) if obs.has_view[c]]
+        clouds = []
+        for c in map(int, np.flatnonzero(obs.has_view)):  # within the mask's bounds: the same points, same order
+            if obs.mask_box(c) is None:
+                continue
+            (x0, y0), (x1, y1) = obs.mask_box(c)
+            box = np.s_[y0:y1 + 1, x0:x1 + 1]
+            clouds.append(self._points(c, obs.depth[c][box] * (obs.mask[c][box] > 0.5), x0, y0))
         return np.concatenate(clouds) if clouds else np.zeros((0, 3))
 
     def registration_hypotheses(self, points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:

@@ -23,7 +23,8 @@ pipeline detects and derives them).
 --resume: a killed run in DIR goes on where it stopped (stages done are skipped, the unfinished one
 resumes from its checkpoints; the timings then cover only what this run did).
 --session DIR runs on an existing session with ground truth (the committed sample, a kept one)
-instead of generating one. With `--set run.device=cuda` the peak GPU memory is printed too.
+instead of generating one. With `--set run.device=cuda` the peak GPU memory is printed too, and
+the recordings of CUDA graphs that failed (the fits then ran eagerly).
 --profile wraps the pipeline in pyinstrument (when installed) and prints its top entries
 (self time); with --keep the full tree goes to OUT/profile.txt.
 """
@@ -206,7 +207,11 @@ def main(argv=None) -> None:
     print(f"peak RSS {peak_mb:.0f} MB (pipeline and its workers together)" + (f"; generator {synth_mb:.0f} MB" if synth_mb else ""))
     gpu_mb = peak_gpu_mb()
     if gpu_mb is not None:
+        from intercap.energies import optim
+
         print(f"peak GPU memory {gpu_mb:.0f} MB allocated by torch")
+        failures = sorted(set(optim._graph_failures))  # this process's (one process on a GPU)
+        print(f"CUDA graphs not recorded: {len(optim._graph_failures)}" + "".join(f"\n  {r}" for r in failures))
     print()
     print(format_table(result))
     print()

@@ -943,16 +943,16 @@ def reprojection_error_px(model, params: BodyParams, obs: BodyObservations, came
         return out
 
 
-def draw_overlay(session, model, params: BodyParams, frame_id: int, cameras: Cameras, path: Path) -> None:
-    """First camera's colour image with the fitted BODY_25 skeleton (green) over the detections (red)."""
+def draw_overlay(session, keypoints: np.ndarray, frame_id: int, cameras: Cameras, path: Path) -> None:
+    """First camera's colour image with the fitted BODY_25 skeleton (green), from the frame's world
+    keypoints (K, 3) as saved (projected on the CPU: on a GPU a frame's few points cost launches)."""
     image = session.read_color(0, frame_id)
     if image is None:
         return
-    with torch.no_grad():
-        kps = model(params).keypoints[0, :NUM_BODY]
-        pix, z = project(kps, cameras.select([0]))
+    first = cameras.select([0]).to(device="cpu")
+    pix, z = project(torch.as_tensor(keypoints[:NUM_BODY], dtype=first.K.dtype), first)
     canvas = cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-    pts = pix[0].cpu().numpy()
+    pts = pix[0].numpy()
     for a, b in BODY_25_EDGES:
         if z[0, a] > 0 and z[0, b] > 0:
             cv2.line(canvas, tuple(int(v) for v in pts[a]), tuple(int(v) for v in pts[b]), (0, 220, 0), 2)
@@ -1259,9 +1259,11 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")
 
 
-def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray, frame_ids, **extra) -> np.ndarray:
+def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray, frame_ids,
+                      **extra) -> tuple[np.ndarray, np.ndarray]:
     """PER_FRAME_FILES of SESSION_FORMAT.md into `folder`, frames not `valid` NaN; returns the
-    vertices (T, V, 3). `extra` arrays go into body_params.npz beside the parameters."""
+    vertices (T, V, 3) and keypoints (T, 67, 3). `extra` arrays go into body_params.npz beside the
+    parameters."""
     T = len(valid)
     vertices = np.full((T, model.num_vertices, 3), np.nan, np.float32)
     keypoints = np.full((T, NUM_BODY_HANDS, 3), np.nan, np.float32)
@@ -1282,7 +1284,7 @@ def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray
     save_npy(folder / "body_vertices.npy", vertices)
     save_npy(folder / "body_faces.npy", model.faces.cpu().numpy().astype(np.int64))
     save_npy(folder / "keypoints3d.npy", keypoints)
-    return vertices
+    return vertices, keypoints
 
 
 def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras,
@@ -1292,13 +1294,14 @@ def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, ou
     `reprojection_px`, `fit_to_data_mm` and `reinitialised`."""
     T = session.num_frames
     stage_dir = out_dir / "body"
-    save_body_results(stage_dir, model, fitted, valid, session.frame_ids, reprojection_px=reproj.astype(np.float32),
-                      fit_to_data_mm=fit_to_data_mm, reinitialised=reinitialised)
+    _, keypoints = save_body_results(stage_dir, model, fitted, valid, session.frame_ids,
+                                     reprojection_px=reproj.astype(np.float32), fit_to_data_mm=fit_to_data_mm,
+                                     reinitialised=reinitialised)
     for name in PER_FRAME_FILES:
         publish(stage_dir / name, out_dir / name)
     for i in range(0, T, max(1, bcfg.overlay_every)):
         if valid[i]:
-            draw_overlay(session, model, fitted.map(lambda t: t[i:i + 1]), int(session.frame_ids[i]), cameras,
+            draw_overlay(session, keypoints[i], int(session.frame_ids[i]), cameras,
                          stage_dir / "overlays" / f"{int(session.frame_ids[i]):06d}.jpg")
     return {
         "frames_fitted": int(valid.sum()),

@@ -708,7 +708,7 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
     T = session.num_frames
     stage_dir = out_dir / "global"
     valid = per_frame.body_valid
-    vertices = save_body_results(stage_dir, model, fitted, valid, session.frame_ids)
+    vertices, keypoints = save_body_results(stage_dir, model, fitted, valid, session.frame_ids)
     ok = per_frame.object_valid
     R_out = np.where(ok[:, None, None], R.numpy(), np.nan).astype(np.float32)
     t_world = centre - (R @ shape.centroid)
@@ -721,7 +721,7 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
     for i in range(0, T, max(1, cfg.body.overlay_every)):
         fid = int(session.frame_ids[i])
         if valid[i]:
-            draw_overlay(session, model, fitted[i], fid, cameras, stage_dir / "overlays" / f"body_{fid:06d}.jpg")
+            draw_overlay(session, keypoints[i], fid, cameras, stage_dir / "overlays" / f"body_{fid:06d}.jpg")
         if ok[i]:
             from intercap.stages.object import draw_overlay as draw_object
 

@@ -108,7 +108,10 @@ class KeypointSource:
         from intercap.stages.detect import keypoints_path
 
         self.session = session
-        self.cameras, self.view_check_px = cameras, view_check_px  # `reject_disagreeing_views` when both set
+        # `reject_disagreeing_views` when both set; on the CPU, as a GPU would take a launch (and a wait)
+        # for each of its small steps, and so that a GPU run drops the keypoints a CPU run drops
+        self.cameras = None if cameras is None else cameras.to(device="cpu")
+        self.view_check_px = view_check_px
         self.rejected = 0  # keypoints dropped by that check so far
         self.out_dir = Path(out_dir)
         self._path = keypoints_path
@@ -141,7 +144,7 @@ class KeypointSource:
         out[..., 2] = np.where(out[..., 2] >= min_confidence, out[..., 2], 0.0)
         if self.cameras is not None and self.view_check_px > 0:
             checked = reject_disagreeing_views(torch.from_numpy(out).to(self.cameras.K), self.cameras,
-                                               self.view_check_px).cpu().numpy()
+                                               self.view_check_px).numpy()
             self.rejected += int(((out[..., 2] > 0) & (checked[..., 2] == 0)).sum())
             out = checked
         return out

@@ -700,12 +700,13 @@ class BodyFitter:
     def weight(self, term: str) -> float:
         return getattr(self.cfg, f"w_{term}")
 
-    def correspondences(self, params: BodyParams, obs: BodyObservations) -> losses.DepthPairs:
+    def correspondences(self, params: BodyParams, obs: BodyObservations, ring_rest=None) -> losses.DepthPairs:
         """E_D's data association, refreshed once per L-BFGS step (as ICP): each point with the
         nearest fitting vertex its view sees, and (when `depth_model_to_data` > 0) each fitting
-        vertex a view sees with that view's nearest point, with the vertices' normals."""
+        vertex a view sees with that view's nearest point, with the vertices' normals.
+        `ring_rest`: the model's `rest_state` of the ring vertices when shape and expression are fixed."""
         with torch.no_grad():
-            ring = self.model.sparse_forward(params, self.ring_vertices).vertices  # (B, R, 3)
+            ring = self.model.sparse_forward(params, self.ring_vertices, ring_rest).vertices  # (B, R, 3)
             normals = vertex_normals(ring, self.ring_faces)  # exact at the fitting vertices (all their faces are here)
             visible = visible_vertices(ring, normals, self.subset_in_ring, self.cameras,
                                        self.cfg.visibility_cells, self.cfg.visibility_margin_m)
@@ -752,10 +753,12 @@ class BodyFitter:
                 mean = torch.zeros(groups, params.shape.shape[1], dtype=params.shape.dtype, device=device)
                 mean = mean.index_add(0, shape_groups, params.shape.detach()) / count
                 leaves["shape"] = torch.logit(mean.clamp(SHAPE_EPS, 1 - SHAPE_EPS))
-            state = {"matches": None, "rest": None, "posed": None}
+            state = {"matches": None, "rest": None, "posed": None, "ring_rest": None}
             if "shape" not in leaves and "expression" not in leaves:  # the rest pose does not move: computed once
                 with torch.no_grad():
                     state["rest"] = self.model.rest_state(params, self.subset)
+                    if "depth" in phase.terms:  # and E_D's correspondences' (`correspondences`)
+                        state["ring_rest"] = self.model.rest_state(params, self.ring_vertices)
             if set(leaves) <= {"global_orient", "transl"}:  # the body keeps its pose: posed once, only placed
                 with torch.no_grad():  # per evaluation (every backend places its model-space output so)
                     unplaced = dataclasses.replace(params, global_orient=torch.zeros_like(params.global_orient),
@@ -789,12 +792,13 @@ class BodyFitter:
 
             def refresh(step, value):
                 if "depth" in phase.terms:
-                    state["matches"] = state["matches"].refreshed(self.correspondences(current(), obs), graph)
+                    state["matches"] = state["matches"].refreshed(
+                        self.correspondences(current(), obs, state["ring_rest"]), graph)
                 if monitor is not None:
                     monitor(phase.name, step, value)
 
             if "depth" in phase.terms:
-                state["matches"] = self.correspondences(current(), obs)
+                state["matches"] = self.correspondences(current(), obs, state["ring_rest"])
             budget = dict(max_steps=getattr(self.cfg, phase.steps_key), inner_iterations=self.cfg.inner_iterations,
                           ftol=self.cfg.ftol, monitor=refresh, graph=graph)
             if self.cfg.per_frame_lbfgs and ("shape" not in leaves or groups == B):  # the frames do not interact

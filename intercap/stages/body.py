@@ -166,7 +166,7 @@ class PersonPoints:
         self._background = None
         self._lock = threading.Lock()
         self._object = None
-        self._T = None  # the cameras' T_world_from_cam as numpy, once
+        self._T = cameras.T_world_from_cam.cpu().numpy()  # for `frame`'s points
         poses = per_frame_result(out_dir, "object", "object_poses.npz")
         if derives and session.object is not None and poses.exists():
             data = np.load(poses)
@@ -246,8 +246,6 @@ class PersonPoints:
         C, P = self.session.num_cameras, self.cfg.points_per_view
         points = np.zeros((C, P, 3), np.float32)
         valid = np.zeros((C, P), bool)
-        if self._T is None:
-            self._T = self.cameras.T_world_from_cam.cpu().numpy()
         rng = np.random.default_rng([self.cfg.seed, frame_id])
         for c in range(C):
             depth = self.session.read_depth(c, frame_id) if depths is None else depths[c]

@@ -365,9 +365,11 @@ class GlobalFitter:
         contact = torch.zeros_like(terms["interpenetration"])
         grasp = torch.zeros_like(contact)
         grasp_world = self.from_object(self.shape.grasp_points, R, centre)
-        for h, slots in enumerate(self.hand_slots):  # every frame, weighted by whether the hand grasps
-            touching = data.grasping[:, h]  # (searching it for the grasping frames would make a GPU wait)
+        for h, slots in enumerate(self.hand_slots):
+            touching = data.grasping[:, h]
             contact = contact + losses.contact_chamfer(body_in_object[:, slots], touching, g.contact_vertices)
+            # E_C' over the grasping frames found on the host when the window was read; without
+            # them (`grasp_rows` None), every frame weighted by `touching` (searching it would make a GPU wait)
             rows = None if data.grasp_rows is None else data.grasp_rows[h]
             if rows is None:
                 grasp = grasp + losses.hand_contact(vertices[:, slots], grasp_world, touching, g.contact_vertices)

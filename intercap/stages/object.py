@@ -376,9 +376,9 @@ class ObjectTracker:
         for p, (obs, _, _) in enumerate(poses):
             for c, (H, W) in enumerate(self.sizes):
                 lo, hi = lows[c, p], highs[c, p]
-                if obs.has_view[c] and obs.mask_box(c) is not None:
-                    mask_lo, mask_hi = obs.mask_box(c)
-                    lo, hi = np.minimum(lo, mask_lo), np.maximum(hi, mask_hi)
+                box = obs.mask_box(c) if obs.has_view[c] else None
+                if box is not None:
+                    lo, hi = np.minimum(lo, box[0]), np.maximum(hi, box[1])
                 lo, hi = np.maximum(lo, [-W, -H]), np.minimum(hi, [2 * W, 2 * H])
                 centre, half = (lo + hi) / 2, max((hi - lo).max() / 2 * (1 + cfg.crop_margin), 8.0)
                 boxes[p, c] = [centre[0] - half, centre[1] - half, centre[0] + half, centre[1] + half]
@@ -552,9 +552,10 @@ class ObjectTracker:
         """World points of the object masks of all views, (N, 3)."""
         clouds = []
         for c in map(int, np.flatnonzero(obs.has_view)):  # within the mask's bounds: the same points, same order
-            if obs.mask_box(c) is None:
+            bounds = obs.mask_box(c)
+            if bounds is None:
                 continue
-            (x0, y0), (x1, y1) = obs.mask_box(c)
+            (x0, y0), (x1, y1) = bounds
             box = np.s_[y0:y1 + 1, x0:x1 + 1]
             clouds.append(self._points(c, obs.depth[c][box] * (obs.mask[c][box] > 0.5), x0, y0))
         return np.concatenate(clouds) if clouds else np.zeros((0, 3))
@@ -683,12 +684,16 @@ class FixedShapeFits:
         for target, value in zip(self.inputs + [self.r6, self.t_c], values):
             target.copy_(value)
 
+    def _terms(self, capacity: Capacity | None):
+        """`ObjectTracker.energy_terms` of the current poses on the recorded inputs."""
+        obs_mask, obs_depth, obs_known, view_weight, crops = self.inputs
+        return self.tracker.energy_terms(obs_mask, obs_depth, obs_known, view_weight, rotation_6d_to_matrix(self.r6),
+                                         self.t_c, crops, capacity)
+
     def _outputs(self) -> torch.Tensor:
         """E_O (P,), confidence (P,) and the render's counts (4,), one tensor to read back."""
-        obs_mask, obs_depth, obs_known, view_weight, crops = self.inputs
-        total, _, _, out = self.tracker.energy_terms(obs_mask, obs_depth, obs_known, view_weight,
-                                                     rotation_6d_to_matrix(self.r6), self.t_c, crops, self.capacity)
-        confidence = self.tracker.confidence(out, obs_mask, obs_depth, obs_known, view_weight)
+        total, _, _, out = self._terms(self.capacity)
+        confidence = self.tracker.confidence(out, *self.inputs[:4])
         return torch.cat([total, confidence.to(total.dtype), out.needed.to(total.dtype)])
 
     def evaluate(self) -> tuple[np.ndarray, np.ndarray]:
@@ -697,9 +702,7 @@ class FixedShapeFits:
         while True:
             if self._evaluate is None:
                 with torch.no_grad():  # room for the current poses' render (and never less than before)
-                    needed = self.tracker.energy_terms(*self.inputs[:4], rotation_6d_to_matrix(self.r6), self.t_c,
-                                                       self.inputs[4])[3].needed
-                fitting = Capacity.fitting(needed)
+                    fitting = Capacity.fitting(self._terms(None)[3].needed)
                 self.capacity = fitting if self.capacity is None else Capacity(
                     *np.maximum(dataclasses.astuple(fitting), dataclasses.astuple(self.capacity)).tolist())
                 self._evaluate = optim.gradient_evaluator([self.r6, self.t_c], self._outputs, graph=True)

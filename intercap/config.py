@@ -162,6 +162,8 @@ class BodyConfig:
     full_steps: int = 20  # + hands, with the depth term and self-penetration (10: stoops stay 2x off, BENCHMARKS.md)
     inner_iterations: int = 8  # L-BFGS iterations per step (E_D correspondences are refreshed between steps)
     ftol: float = 1e-5
+    line_search: str = "auto"  # of the phases fitting one shape over the batch: as global.line_search
+    max_line_search: int = 4  # Armijo's trials per L-BFGS iteration there
     cuda_graphs: bool = True  # on CUDA each phase's evaluations replay one recorded graph (`optim.gradient_evaluator`)
     per_frame_lbfgs: bool = True  # each frame its own L-BFGS (`minimise_per_frame`) where the frames do not interact;
     # false: one L-BFGS over the batch's summed energy (150 frames, 32-frame batches: surface 6.2 against 5.8 mm)
@@ -196,6 +198,9 @@ class GlobalConfig:
     # faster, MPJPE +4 %, penetration +5 %; at 5 fps 12 steps cost penetration 9 %: BENCHMARKS.md)
     inner_iterations: int = 8
     ftol: float = 1.0e-6
+    line_search: str = "auto"  # "strong_wolfe" (torch's), "armijo" (one host read per trial), auto: Armijo on CUDA
+    # (`optim.minimise`; the same accuracy on the CPU bench, BENCHMARKS.md)
+    max_line_search: int = 4  # Armijo's trials per L-BFGS iteration
     cuda_graphs: bool = True  # on CUDA a window's evaluations replay one recorded graph (`optim.gradient_evaluator`)
     correspondence_every: int = 5  # E_D / E_O data association refreshed every this many steps
     object_points_per_view: int = 300  # object depth points per view for E_O
@@ -355,11 +360,16 @@ def for_frame_rate(cfg: Config, fps: float) -> Config:
     return dataclasses.replace(cfg, **sections)
 
 
+# Settings with a fixed set of values, checked when the config is read (not when a stage reaches them).
+CHOICES = {("body", "line_search"): ("auto", "strong_wolfe", "armijo"),
+           ("global_", "line_search"): ("auto", "strong_wolfe", "armijo")}
+
+
 # Sections whose name is a Python keyword: written `global` in YAML and overrides.
 KEYWORD_SECTIONS = {"global": "global_"}
 
 
-def _apply(node: Any, updates: dict, prefix: str = "") -> None:
+def _apply(node: Any, updates: dict, prefix: str = "", section: str = "") -> None:
     names = {f.name for f in dataclasses.fields(node)}
     for key, value in updates.items():
         path = f"{prefix}{key}"
@@ -370,9 +380,13 @@ def _apply(node: Any, updates: dict, prefix: str = "") -> None:
         if dataclasses.is_dataclass(current):
             if not isinstance(value, dict):
                 raise ConfigError(f"{path} is a section; give it a mapping")
-            _apply(current, value, prefix=path + ".")
+            _apply(current, value, prefix=path + ".", section=key)
         else:
-            setattr(node, key, _coerce(value, current, path))
+            value = _coerce(value, current, path)
+            allowed = CHOICES.get((section, key))
+            if allowed and value not in allowed:
+                raise ConfigError(f"{path}: expected one of {', '.join(allowed)}, got {value!r}")
+            setattr(node, key, value)
 
 
 def load_config(yaml_path: str | Path | None = None, overrides: list[str] | None = None) -> Config:

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 from intercap import parallel
-from intercap.config import Config, for_frame_rate, save_config
+from intercap.config import Config, ConfigError, for_frame_rate, save_config
 from intercap.io.files import read_json, write_json
 
 log = logging.getLogger(__name__)
@@ -164,6 +164,28 @@ def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: 
         log.info("%s: done in %.1f s", name, seconds)
 
 
+def check_device(device: str) -> None:
+    """A clear ConfigError, before any stage starts, for a `run.device` this machine cannot run on
+    (rather than torch's assertion deep inside the first stage that moves a tensor there)."""
+    if device == "cpu":
+        return
+    import torch
+
+    try:
+        chosen = torch.device(device)
+    except RuntimeError:
+        raise ConfigError(f"run.device: {device!r} is not a device; use cpu, cuda or cuda:N") from None
+    if chosen.type != "cuda":
+        raise ConfigError(f"run.device: {device!r}; only cpu and cuda (cuda:N) are supported")
+    if not torch.backends.cuda.is_built():
+        raise ConfigError(f"run.device={device}: this torch ({torch.__version__}) is a CPU-only build; "
+                          "install a CUDA build of torch to run on a GPU")
+    if not torch.cuda.is_available():
+        raise ConfigError(f"run.device={device}: no CUDA GPU is visible to torch (driver, CUDA_VISIBLE_DEVICES?)")
+    if chosen.index is not None and chosen.index >= torch.cuda.device_count():
+        raise ConfigError(f"run.device={device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
+
+
 def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[str] | None = None,
                  progress: bool = True) -> dict:
     """Run the requested stages (default: every built stage) on a session.
@@ -173,6 +195,7 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
 
     cfg = cfg or Config()
     names = resolve_stages(stages or cfg.run.stages)
+    check_device(cfg.run.device)
     session = Session.load(session_path)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -15,8 +15,7 @@ class HostWaits(TorchDispatchMode):
     recorded CUDA graph, so the body's and the global stage's evaluations must issue none. Seen
     on the CPU: aten operations as dispatched, torch's factories as called."""
 
-    WAITING = {"_local_scalar_dense", "nonzero", "masked_select", "unique_dim", "_unique2", "unique_consecutive",
-               "equal", "is_nonzero", "bincount", "histc", "_linalg_check_errors", "repeat_interleave"}
+    WAITING = optim.HOST_WAITS
 
     # torch factories that, called without a device, make a CPU tensor on a GPU run: indexing a CUDA
     # tensor with one copies it from the host (anny's interpolation did: `torch.arange(batch)`)

@@ -9,7 +9,7 @@ def test_counts_kernels_apart_from_views_and_backward_apart_from_forward():
     with OperationCount() as count:
         y = (x * 2).view(-1)[:5].unsqueeze(0)  # one kernel (mul), three views
         total = (y.exp() + 1).sum()  # three kernels
-    assert (count.kernels, count.backward) == (4, 0)
+    assert (count.kernels, count.backward, count.waits) == (4, 0, 0)
     assert count.all >= 7  # the views, and any detach autograd adds to save a result
     assert sum(count.sites.values()) == 4 and set(count.sites) == {"-"}  # issued by this test, not by intercap
     with OperationCount() as count:
@@ -40,3 +40,13 @@ def test_replayed_evaluations_count_apart():
         (x * 2).sin()
         count.replaying = False
     assert (count.kernels, count.in_graphs) == (1, 2)
+
+
+def test_counts_what_the_host_waits_for():
+    x = torch.randn(5)
+    with OperationCount() as count:
+        float(x.sum())  # a value read back
+        x.nonzero()  # a shape that depends on the data
+        x * 2
+    assert (count.waits, count.kernels) == (2, 4)  # sum, the read (a copy), nonzero, mul
+    assert count.wait_sites == {"-": 2}  # issued by this test, not by intercap

@@ -86,6 +86,8 @@ def test_config_overrides_and_errors(tmp_path):
     assert load_config(overrides=["device=cuda"]).run.device == "cuda"  # a bare key: a `run` setting
     with pytest.raises(ConfigError, match="unknown config key 'voxel_size_m'"):
         load_config(overrides=["voxel_size_m=0.02"])
+    with pytest.raises(ConfigError, match="global.line_search: expected one of auto, strong_wolfe, armijo"):
+        load_config(overrides=["global.line_search=wolfe"])  # a choice is checked when read, not when reached
     yaml_file = tmp_path / "c.yaml"
     yaml_file.write_text("prepare:\n  pixel_stride: 4\n")
     assert load_config(yaml_file).prepare.pixel_stride == 4
@@ -101,6 +103,20 @@ def test_cli_validate_and_run_errors(tmp_path, capsys, monkeypatch):
     assert "session.yaml" in capsys.readouterr().out
     assert main(["run", str(SAMPLE), "--out", str(tmp_path / "o"), "--stages", "planned"]) == 2
     assert "not implemented yet" in capsys.readouterr().err
+
+
+def test_a_device_this_machine_lacks_is_a_clear_error_before_any_stage(tmp_path, capsys):
+    import torch
+
+    cases = [("gpu", "is not a device"), ("mps", "only cpu and cuda")]
+    if not torch.cuda.is_available():
+        cases.append(("cuda", "CPU-only build" if not torch.backends.cuda.is_built() else "no CUDA GPU"))
+    else:
+        cases.append((f"cuda:{torch.cuda.device_count()}", "CUDA device"))
+    for device, reason in cases:
+        assert main(["run", str(SAMPLE), "--out", str(tmp_path / device), "--set", f"device={device}"]) == 2
+        assert reason in capsys.readouterr().err
+        assert not (tmp_path / device).exists()  # nothing started
 
 
 def test_dense_frame_rates_run_with_the_dense_budgets(tiny_session, tmp_path, monkeypatch):

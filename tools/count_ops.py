@@ -26,8 +26,9 @@ first apart, as the CUDA-graph replays a GPU runs them as (`optim.gradient_evalu
 each; the object's fits render in fixed shapes, as on a GPU (`ObjectTracker.fixed_shapes`).
 
 `--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=300 --set
-object.side_by_side=8` runs the GPU's settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`,
-`global.window_frames_gpu`, `object.side_by_side_gpu`).
+object.side_by_side=8 --set body.line_search=armijo --set global.line_search=armijo` runs the GPU's
+settings (`body.batch_frames_gpu`, `body.side_by_side_gpu`, `global.window_frames_gpu`,
+`object.side_by_side_gpu`, and the line search "auto" picks on CUDA).
 """
 from __future__ import annotations
 
@@ -41,6 +42,8 @@ from pathlib import Path
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
+
+from intercap.energies.optim import HOST_WAITS
 
 # aten operations that only describe a tensor's view of memory: no kernel on a GPU
 VIEW_OPS = {"view", "_unsafe_view", "reshape", "select", "slice", "unsqueeze", "squeeze", "expand", "t", "transpose",
@@ -56,13 +59,18 @@ class OperationCount(TorchDispatchMode):
 
     def __init__(self):
         super().__init__()
-        self.all = self.kernels = self.backward = self.in_graphs = self.replays = 0
+        self.all = self.kernels = self.backward = self.in_graphs = self.replays = self.waits = 0
         self.replaying = False
         self.sites = collections.Counter()
+        self.wait_sites = collections.Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.all += 1
-        if func.overloadpacket.__name__ in VIEW_OPS:
+        name = func.overloadpacket.__name__
+        if name in HOST_WAITS:
+            self.waits += 1
+            self.wait_sites[issuing_function(sys._getframe(1))] += 1
+        if name in VIEW_OPS:
             pass
         elif self.replaying:
             self.in_graphs += 1
@@ -177,19 +185,24 @@ def main(argv=None) -> None:
 
     print(f"\noperations per frame on {args.session} ({T} frames; {' '.join(args.set) or 'default settings'})")
     print(f"{'stage':8s} {'all':>9s} {'kernels':>9s} {'backward':>9s} {'in graphs':>10s} {'replays':>8s} "
-          f"{'H100 s/frame >= (25 us a launch)':>33s}")
+          f"{'waits':>7s} {'H100 s/frame >= (25 us a launch)':>33s}")
     for name, c in counts.items():
         launches = (c.kernels + c.replays) / T
         print(f"{name:8s} {c.all / T:9.0f} {c.kernels / T:9.0f} {c.backward / T:9.0f} {c.in_graphs / T:10.0f} "
-              f"{c.replays / T:8.1f} {launches * US_PER_KERNEL_H100 * 1e-6:33.3f}")
+              f"{c.replays / T:8.1f} {c.waits / T:7.1f} {launches * US_PER_KERNEL_H100 * 1e-6:33.3f}")
     total = sum(c.kernels + c.replays for c in counts.values()) / T
-    print(f"{'total':8s} {'':9s} {'':9s} {'':9s} {'':10s} {'':8s} {total * US_PER_KERNEL_H100 * 1e-6:33.3f}")
+    print(f"{'total':8s} {'':9s} {'':9s} {'':9s} {'':10s} {'':8s} {'':7s} {total * US_PER_KERNEL_H100 * 1e-6:33.3f}")
     if args.graphs:
         print("(kernels: launched one by one; in graphs: run by the replays, whose GPU time this does not count)")
+    print("(waits: operations the host waits on, `optim.HOST_WAITS`, on a GPU each drains its queue; also counted "
+          "where a GPU run keeps the tensors on the CPU)")
     for name, c in counts.items():
         print(f"\n{name}: forward kernels per frame by issuing function")
         for site, n in c.sites.most_common(args.sites):
             print(f"  {n / T:8.0f}  {site}")
+        print(f"{name}: host waits per frame by issuing function")
+        for site, n in c.wait_sites.most_common(args.sites):
+            print(f"  {n / T:8.1f}  {site}")
 
 
 if __name__ == "__main__":

@@ -802,7 +802,8 @@ class BodyFitter:
             if self.cfg.per_frame_lbfgs and ("shape" not in leaves or groups == B):  # the frames do not interact
                 result = minimise_per_frame(list(leaves.values()), frame_energies, **budget)
             else:  # frames sharing a phenotype (or `per_frame_lbfgs` off): one problem
-                result = minimise(list(leaves.values()), lambda: frame_energies().sum(), **budget)
+                result = minimise(list(leaves.values()), lambda: frame_energies().sum(), **budget,
+                                  line_search=self.cfg.line_search, max_line_search=self.cfg.max_line_search)
             params = current().detach()
             stats[phase.name] = {"energy": result.energy, "steps": result.steps,
                                  "evaluations": result.evaluations, "stopped": result.stopped}

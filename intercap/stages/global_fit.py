@@ -322,7 +322,8 @@ class GlobalFitter:
         rest = rest[~torch.isin(rest, subset)]
         self.vertex_ids = torch.cat([subset, rest])
         position = {int(v): i for i, v in enumerate(self.vertex_ids.tolist())}
-        self.hand_slots = [torch.tensor([position[int(v)] for v in r], device=subset.device) for r in regions]
+        self.hand_slots = [torch.tensor([position[v] for v in torch.as_tensor(r).tolist()], device=subset.device)
+                           for r in regions]
         self.prior_slots = {k: torch.tensor([position[int(v)] for v in p.point_ids.tolist()], device=subset.device)
                             for k, p in self.priors.items()}
         self.free_bones = self.body.free_bones
@@ -450,7 +451,8 @@ class GlobalFitter:
         with torch.no_grad():
             before = {k: float(v.sum()) for k, v in self.energy_terms(*current(), data, state["matches"], rest).items()}
         result = minimise(list(leaves.values()), energy, max_steps=g.steps, inner_iterations=g.inner_iterations,
-                          ftol=g.ftol, monitor=refresh, graph=graph)
+                          ftol=g.ftol, monitor=refresh, graph=graph, line_search=g.line_search,
+                          max_line_search=g.max_line_search)
         with torch.no_grad():
             body, R, centre = (x.detach() for x in current())
             after = {k: float(v.sum()) for k, v in self.energy_terms(body, R, centre, data, state["matches"], rest).items()}

@@ -45,6 +45,49 @@ def test_a_frame_fits_the_same_alone_and_in_a_batch():
     assert (x[:, 0] - a).abs().max() < 1e-4 < 1e-3 < (joint_x[:, 0] - a).abs().max()
 
 
+def test_armijo_lbfgs_solves_one_problem_with_variables_of_any_shape():
+    """`minimise(line_search="armijo")`: the batched L-BFGS with the whole problem as one row reaches
+    the minimum of a summed problem with a shared variable of another shape (as the body's phases with
+    one phenotype per batch); "auto" on the CPU is torch's strong Wolfe L-BFGS, step for step."""
+    a = torch.linspace(0.5, 2.0, 8)
+
+    def problem(x, z, shared):
+        return frame_problems(a, x, z).sum() + 10 * ((shared - a.mean()) ** 2).sum()
+
+    x, z = starts(8)
+    shared = torch.zeros(2, 1)
+    result = minimise([x, z, shared], lambda: problem(x, z, shared), max_steps=60, inner_iterations=10,
+                      ftol=1e-14, line_search="armijo")
+    assert torch.allclose(x[:, 0], a, atol=1e-3) and torch.allclose(z, a[:, None].expand(-1, 3), atol=1e-4)
+    assert torch.allclose(shared, a.mean().expand(2, 1), atol=1e-5) and result.energy < 1e-5
+
+    runs = []
+    for line_search in ("auto", "strong_wolfe"):
+        x, z = starts(8)
+        shared = torch.zeros(2, 1)
+        runs.append((minimise([x, z, shared], lambda: problem(x, z, shared), max_steps=5, line_search=line_search),
+                     x.detach().clone()))
+    assert runs[0][0] == runs[1][0] and torch.equal(runs[0][1], runs[1][1])
+
+
+def test_armijo_lbfgs_reads_the_host_twice_an_evaluation_where_strong_wolfe_reads_it_dozens_of_times():
+    """Why the GPU runs the Armijo search: each value read back (`.item()`, `float()`, `bool()` of a
+    tensor) waits for the GPU's queue to drain. On this problem torch's strong Wolfe L-BFGS reads
+    about 35 values per evaluation."""
+    from host_waits import HostWaits
+
+    a = torch.linspace(0.5, 2.0, 8)
+    reads = {}
+    for line_search in ("strong_wolfe", "armijo"):
+        x, z = starts(8)
+        waits = HostWaits()
+        with waits:
+            result = minimise([x, z], lambda: frame_problems(a, x, z).sum(), max_steps=10, inner_iterations=8,
+                              line_search=line_search)
+        reads[line_search] = waits.seen.count("_local_scalar_dense") / result.evaluations
+    assert reads["armijo"] <= 2.0 and reads["strong_wolfe"] > 10 * reads["armijo"], reads
+
+
 def test_a_frame_that_cannot_improve_stays_put_and_the_others_go_on():
     """A frame whose energy is not finite at every trial step keeps its start; the rest converge."""
     a = torch.tensor([1.0, 1.5, 2.0])

@@ -26,7 +26,7 @@ bench() {  # NAME TIMEOUT ARGS...
     local name=$1 limit=$2; shift 2
     timeout "$limit" python3 -m tools.bench_pipeline --frames "${FRAMES:-150}" --keep /tmp/k_$name \
         --set report.enabled=false "$@" > "$OUT/$name.log" 2>&1
-    echo "$name: rc $? after $(( $(date +%s) - T0 )) s"; grep -A12 "^whole pipeline" "$OUT/$name.log"; tail -n 3 "$OUT/$name.log"
+    echo "$name: rc $? after $(( $(date +%s) - T0 )) s"; grep -A15 "^whole pipeline" "$OUT/$name.log"; tail -n 3 "$OUT/$name.log"
     cp /tmp/k_$name/*_out/metrics.json "$OUT/${name}_metrics.json" 2>/dev/null
     cp /tmp/k_$name/*_out/profile.txt "$OUT/${name}_profile.txt" 2>/dev/null
 }

@@ -64,6 +64,27 @@ def test_missing_prior_file_gives_a_clear_error(tmp_path, monkeypatch):
 
 # -- joint limits ---------------------------------------------------------------------
 
+def test_quaternion_product_is_roma_s_in_fewer_kernels():
+    """The joint angles' composition (`priors.quat_product`): the Hamilton product (xyzw) of roma,
+    values and gradients, as an outer product and one matrix product."""
+    import roma
+    from tools.count_ops import OperationCount
+
+    generator = torch.Generator().manual_seed(0)
+    p, q = (torch.randn(6, 5, 4, dtype=torch.float64, generator=generator) for _ in range(2))
+    weights = torch.randn(6, 5, 4, dtype=torch.float64, generator=generator)
+    results = {}
+    for name, product in (("ours", priors.quat_product), ("roma", roma.quat_product)):
+        a, b = p.clone().requires_grad_(True), q.clone().requires_grad_(True)
+        with OperationCount() as count:
+            out = product(a, b)
+            (out * weights).sum().backward()
+        results[name] = (out.detach(), a.grad, b.grad, count.kernels)
+    for ours, theirs in zip(results["ours"][:3], results["roma"][:3]):
+        torch.testing.assert_close(ours, theirs, rtol=0, atol=1e-12)
+    assert results["ours"][3] * 3 < results["roma"][3], (results["ours"][3], results["roma"][3])
+
+
 def test_rest_pose_is_inside_every_limit():
     body = rest_pose(2)
     assert torch.equal(priors.joint_limit_penalty(body), torch.zeros(2))

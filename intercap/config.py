@@ -361,8 +361,8 @@ def for_frame_rate(cfg: Config, fps: float) -> Config:
 
 
 # Settings with a fixed set of values, checked when the config is read (not when a stage reaches them).
-CHOICES = {("body", "line_search"): ("auto", "strong_wolfe", "armijo"),
-           ("global_", "line_search"): ("auto", "strong_wolfe", "armijo")}
+LINE_SEARCHES = ("auto", "strong_wolfe", "armijo")  # `optim.minimise`'s
+CHOICES = {("body", "line_search"): LINE_SEARCHES, ("global_", "line_search"): LINE_SEARCHES}
 
 
 # Sections whose name is a Python keyword: written `global` in YAML and overrides.

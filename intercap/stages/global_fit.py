@@ -321,11 +321,14 @@ class GlobalFitter:
         rest = torch.unique(torch.cat(extra).to(subset))
         rest = rest[~torch.isin(rest, subset)]
         self.vertex_ids = torch.cat([subset, rest])
-        position = {int(v): i for i, v in enumerate(self.vertex_ids.tolist())}
-        self.hand_slots = [torch.tensor([position[v] for v in torch.as_tensor(r).tolist()], device=subset.device)
-                           for r in regions]
-        self.prior_slots = {k: torch.tensor([position[int(v)] for v in p.point_ids.tolist()], device=subset.device)
-                            for k, p in self.priors.items()}
+        position = {v: i for i, v in enumerate(self.vertex_ids.tolist())}
+
+        def slots(ids) -> torch.Tensor:
+            """The window's vertex slots of model vertices `ids` (read on the host in one `tolist`)."""
+            return torch.tensor([position[v] for v in torch.as_tensor(ids).tolist()], device=subset.device)
+
+        self.hand_slots = [slots(r) for r in regions]
+        self.prior_slots = {k: slots(p.point_ids) for k, p in self.priors.items()}
         self.free_bones = self.body.free_bones
         self.gravity = None  # (3,) m/s^2 for the free-flight term; set by `run` when episodes exist
 

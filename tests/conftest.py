@@ -235,6 +235,14 @@ def write_tiny_session(
 
 
 @pytest.fixture
+def replay_on_cpu(monkeypatch):
+    """The fits' CUDA-graph recordings made and replayed on the CPU (graph_replay.py); the replays made."""
+    from graph_replay import replaying_on_cpu
+
+    yield from replaying_on_cpu(monkeypatch)
+
+
+@pytest.fixture
 def tiny_session(tmp_path: Path) -> Path:
     """A fresh tiny valid session (2 cameras cam0/cam1, 64x48, 3 frames, box object); its folder."""
     return write_tiny_session(tmp_path / "session")

@@ -62,24 +62,25 @@ class HostWaits(TorchDispatchMode):
 
 
 def watch_evaluations(monkeypatch) -> tuple[HostWaits, list[list]]:
-    """Watch every `gradient_evaluator`'s calls after its first (the first runs eagerly on a GPU too,
-    and fills the caches there; the rest are recorded): returns the `HostWaits` they share and, per
-    evaluator made, the list of its calls."""
+    """Watch every function `optim.recorded` is given (what a GPU records), its calls after its first
+    (the first runs eagerly on a GPU too, and fills the caches there): returns the `HostWaits` they
+    share and, per evaluation (energy and gradients: the functions named "evaluation"), the list of
+    its calls. The L-BFGS's other recorded parts (direction, verdict, step) are watched too."""
     waits, evaluators = HostWaits(), []
-    real = optim.gradient_evaluator
+    real = optim.recorded
 
-    def watched(variables, energy_fn, graph=False):
-        evaluate, calls = real(variables, energy_fn, graph), []
-        evaluators.append(calls)
+    def watched(fn, enabled, device):
+        run, calls = real(fn, enabled, device), []
+        if fn.__name__ == "evaluation":
+            evaluators.append(calls)
 
-        def evaluate_watched():
+        def run_watched():
             calls.append(1)
             if len(calls) == 1:
-                return evaluate()
+                return run()
             with waits:
-                return evaluate()
-        return evaluate_watched
+                return run()
+        return run_watched
 
-    monkeypatch.setattr(optim, "gradient_evaluator", watched)
+    monkeypatch.setattr(optim, "recorded", watched)
     return waits, evaluators
-

@@ -21,9 +21,11 @@ caller). Counting slows the run several times: its timings mean nothing.
                               [--out DIR] [--sites 15] [--set SECTION.KEY=VALUE ...]
 
 `--alone` runs only the counted stages (for one that needs no earlier stage's results: object).
-`--graphs` counts the body's, the global stage's and the object's evaluations after each fit's
-first apart, as the CUDA-graph replays a GPU runs them as (`optim.gradient_evaluator`): one launch
-each; the object's fits render in fixed shapes, as on a GPU (`ObjectTracker.fixed_shapes`).
+`--graphs` counts what the fits record on a GPU (`optim.recorded`: the body's, the global stage's
+and the object's evaluations, the L-BFGS's direction, verdict and step) after each one's first call
+apart, as the CUDA-graph replays a GPU runs them as: one launch each; the stages run as they do
+where graphs are recorded (`optim.records_graphs`: the object renders in fixed shapes, the depth
+pairs keep theirs).
 
 `--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=300 --set
 object.side_by_side=8 --set body.line_search=armijo --set global.line_search=armijo` runs the GPU's
@@ -105,7 +107,7 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
 
     counts, running = {}, {}
     originals = dict(pipeline.STAGES)
-    evaluator = optim.gradient_evaluator
+    record, records_graphs = optim.recorded, optim.records_graphs
 
     def counted(name, run):
         def run_counting(session, cfg, out_dir, progress):
@@ -117,38 +119,31 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
                 running.clear()
         return run_counting
 
-    def as_on_a_gpu(variables, energy_fn, graph=False):
-        """`optim.gradient_evaluator` whose calls after the first count as a GPU's graph replays
-        (the fits record one where `cuda_graphs` is on; this ignores the global stage's windows
-        with a free flight, which stay eager)."""
-        evaluate, calls = evaluator(variables, energy_fn, graph), []
+    def as_on_a_gpu(fn, enabled, device):
+        """`optim.recorded` as on a GPU: calls after the first count as graph replays (the fits record
+        where `cuda_graphs` is on; the global stage's windows with a free flight stay eager)."""
+        if not enabled:
+            return fn
+        calls = []
 
-        def counted_evaluation():
+        def counted():
             calls.append(1)
             counter = running.get("stage")
             if len(calls) == 1 or counter is None:
-                return evaluate()
+                return fn()
             counter.replaying, counter.replays = True, counter.replays + 1
             try:
-                return evaluate()
+                return fn()
             finally:
                 counter.replaying = False
-        return counted_evaluation
+        return counted
 
     from intercap.geometry import rendering
-    from intercap.stages.object import ObjectTracker
-
-    tracker_init = ObjectTracker.__init__
-
-    def tracker_as_on_a_gpu(self, *args, **kwargs):
-        tracker_init(self, *args, **kwargs)
-        self.fixed_shapes = self.cfg.cuda_graphs
 
     cpu_pairs = rendering.MAX_PAIRS["cpu"]
     rendering.MAX_PAIRS["cpu"] = rendering.MAX_PAIRS["cuda"]  # the renderer's work in a GPU's chunks
-    if graphs:
-        optim.gradient_evaluator = as_on_a_gpu
-        ObjectTracker.__init__ = tracker_as_on_a_gpu
+    if graphs:  # the stages record (depth pairs and renders in fixed shapes), counted as replays
+        optim.recorded, optim.records_graphs = as_on_a_gpu, lambda device: True
     try:
         for name in stages:
             pipeline.STAGES[name] = dataclasses.replace(originals[name], run=counted(name, originals[name].run))
@@ -157,8 +152,7 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
     finally:
         pipeline.STAGES.update(originals)
         rendering.MAX_PAIRS["cpu"] = cpu_pairs
-        optim.gradient_evaluator = evaluator
-        ObjectTracker.__init__ = tracker_init
+        optim.recorded, optim.records_graphs = record, records_graphs
     return counts, Session.load(session).num_frames
 
 

@@ -12,6 +12,8 @@ import numpy as np
 import roma
 import torch
 
+from intercap.energies import optim
+
 
 def geman_mcclure(residual: torch.Tensor, scale: float) -> torch.Tensor:
     """rho(r) = r^2 / (r^2 + s^2): quadratic near zero, saturates at 1 for outliers."""
@@ -206,13 +208,13 @@ def depth_pairs(points: torch.Tensor, point_valid: torch.Tensor, normals: torch.
     (B, C, N) from `nearest_points` (None: the model-to-data half is off), that half weighted
     `model_to_data`. Each half is a mean per view over its pairs, as in PROX's E_D.
 
-    `compact` (default: on the CPU) lists the pairs that exist only; otherwise every (frame, view,
-    point) and (frame, view, vertex) slot is a pair, those without a partner weighted 0: a GPU
-    then neither waits for `nonzero` nor sees the count change between refreshes (a CUDA graph
-    of the energy reads the pairs in place, `DepthPairs.assign`)."""
+    `compact` (default: where no graph is recorded, `optim.records_graphs`) lists the pairs that
+    exist only; otherwise every (frame, view, point) and (frame, view, vertex) slot is a pair, those
+    without a partner weighted 0: a GPU then neither waits for `nonzero` nor sees the count change
+    between refreshes (a CUDA graph of the energy reads the pairs in place, `DepthPairs.assign`)."""
     B, N = normals.shape[:2]
     if compact is None:
-        compact = points.device.type == "cpu"
+        compact = not optim.records_graphs(points.device)
 
     def half(mask, vertex_of, point_of, weight):
         count = mask.sum(-1).clamp(min=1).to(points.dtype)  # (B, C) pairs per view

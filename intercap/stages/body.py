@@ -45,7 +45,7 @@ from scipy.spatial import cKDTree
 from intercap.body_models import BodyParams, shared_model
 from intercap.body_models.base import axis_angle_to_matrix, matrix_to_axis_angle
 from intercap.body_models.keypoints import BODY_25, BODY_25_EDGES, NUM_BODY, NUM_BODY_HANDS
-from intercap.energies import losses, priors
+from intercap.energies import losses, optim, priors
 from intercap.energies.optim import minimise, minimise_per_frame
 from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
 from intercap.geometry.ground import up_hint_from_cameras
@@ -786,7 +786,7 @@ class BodyFitter:
                                           getattr(self.cfg, phase.rho_key), out=out, rest=rest)
                 return sum(self.weight(k) * v for k, v in terms.items())
 
-            graph = self.cfg.cuda_graphs and device.type == "cuda"  # each phase's evaluations: one recorded graph
+            graph = self.cfg.cuda_graphs and optim.records_graphs(device)  # each phase's evaluations: one recorded graph
 
             def refresh(step, value):
                 if "depth" in phase.terms:

@@ -44,7 +44,7 @@ import trimesh
 
 from intercap.body_models import BodyParams, shared_model
 from intercap.body_models.base import PARAM_FIELDS, BodyOutput, axis_angle_to_matrix, matrix_to_axis_angle
-from intercap.energies import losses
+from intercap.energies import losses, optim
 from intercap.energies.motion_prior import MODEL_FPS
 from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras
@@ -442,7 +442,7 @@ class GlobalFitter:
 
         # evaluations replay a recorded CUDA graph (`gradient_evaluator`), but not with a free flight in the
         # window (its term picks each episode's frames on the CPU)
-        graph = g.cuda_graphs and R0.is_cuda and (self.gravity is None or data.flight is None)
+        graph = g.cuda_graphs and optim.records_graphs(R0.device) and (self.gravity is None or data.flight is None)
 
         def refresh(step, value):
             if step % max(1, g.correspondence_every) == 0:

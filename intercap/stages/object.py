@@ -216,7 +216,7 @@ class ObjectTracker:
         self.session_masks = cfg.use_session_masks  # the session's mask where a view and frame has one ...
         self.use_masks = cfg.use_session_masks and not session.missing("mask_object").any()  # ... or everywhere
         # renders of fixed shapes (`rendering.Capacity`), each fit step one replayed CUDA graph
-        self.fixed_shapes = self.device.type == "cuda" and cfg.cuda_graphs
+        self.fixed_shapes = optim.records_graphs(self.device) and cfg.cuda_graphs
         self._fixed_fits: dict[int, FixedShapeFits] = {}  # by the number of poses fitted at once
         self._reader, self._ahead = None, {}  # `read_ahead`'s thread and its observations, by frame
         self.backgrounds = None

@@ -2,7 +2,7 @@
 import numpy as np
 import torch
 
-from intercap.energies.optim import AdamRows, minimise, minimise_per_frame
+from intercap.energies.optim import AdamRows, PairMemory, minimise, minimise_per_frame
 
 
 def frame_problems(targets: torch.Tensor, x: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
@@ -143,3 +143,60 @@ def test_host_waits_sees_what_a_gpu_would_wait_for():
         torch.zeros(2, device=x.device)
     assert waits.seen == ["nonzero", "_local_scalar_dense", "lift_fresh", "index", "copy_",
                           "torch.arange without a device"], waits.seen
+
+
+def two_loop_recursion(g, gamma, pairs):
+    """Nocedal and Wright's algorithm 7.4, row by row: H g for the pairs (s, y, kept) oldest first."""
+    q, alphas = g.clone(), []
+    for s, y, kept in reversed(pairs):
+        rho = torch.where(kept, 1 / (s * y).sum(1), torch.zeros_like(gamma))
+        alphas.append(rho * (s * q).sum(1))
+        q = q - alphas[-1][:, None] * y
+    q = q * gamma[:, None]
+    for (s, y, kept), alpha in zip(pairs, reversed(alphas)):
+        rho = torch.where(kept, 1 / (s * y).sum(1), torch.zeros_like(gamma))
+        q = q + (alpha - rho * (y * q).sum(1))[:, None] * s
+    return q
+
+
+def test_compact_inverse_hessian_is_the_two_loop_recursions():
+    """`PairMemory`'s compact form gives the two-loop product per row, with pairs skipped (not kept),
+    slots still empty, and the oldest pairs dropped once the memory is full."""
+    generator = torch.Generator().manual_seed(0)
+    B, n, size = 3, 12, 5
+    curvature = torch.randn(B, n, n, generator=generator, dtype=torch.float64)
+    curvature = curvature @ curvature.mT + torch.eye(n, dtype=torch.float64)
+    memory, pairs = PairMemory(B, n, size, curvature), []
+    for count in range(1, 9):
+        s = torch.randn(B, n, generator=generator, dtype=torch.float64)
+        kept = torch.rand(B, generator=generator) > 0.3
+        pairs = (pairs + [(s, (curvature @ s[:, :, None])[:, :, 0], kept)])[-size:]
+        memory.push(*pairs[-1])
+        g = torch.randn(B, n, generator=generator, dtype=torch.float64)
+        gamma = torch.rand(B, generator=generator, dtype=torch.float64) + 0.5
+        expected = two_loop_recursion(g, gamma, pairs)
+        assert torch.allclose(memory.inverse_hessian_times(g, gamma), expected, rtol=1e-10, atol=1e-12), count
+    empty = PairMemory(B, n, size, curvature)
+    assert torch.equal(empty.inverse_hessian_times(g, gamma), gamma[:, None] * g)
+
+
+def test_lbfgs_replayed_from_recordings_is_the_eager_fit(replay_on_cpu):
+    """With `graph`, each part of an L-BFGS iteration (direction, evaluation, verdict, step) replays
+    a recording, as on CUDA (here replayed on the CPU, `graph_replay`): every frame ends where the
+    eager fit ends, bit for bit, per frame and as one problem with Armijo's search."""
+    a = torch.linspace(0.5, 2.0, 8)
+    runs = {}
+    for graph in (False, True):
+        x, z = starts(8)
+        result = minimise_per_frame([x, z], lambda: frame_problems(a, x, z), max_steps=6, inner_iterations=5,
+                                    graph=graph)
+        shared = torch.zeros(2, 1)
+        joint = minimise([shared], lambda: ((shared - a[:2, None]) ** 4).sum() + (shared ** 2).sum(), max_steps=6,
+                         line_search="armijo", graph=graph)
+        runs[graph] = (x.detach().clone(), z.detach().clone(), result, shared.detach().clone(), joint)
+    replays = len(replay_on_cpu)
+    assert replays > 100  # most parts of most iterations were replayed
+    (x0, z0, result0, shared0, joint0), (x1, z1, result1, shared1, joint1) = runs[False], runs[True]
+    assert torch.equal(x0, x1) and torch.equal(z0, z1) and torch.equal(shared0, shared1)
+    assert result0 == result1 and joint0 == joint1
+    assert result0.energy < 1e-3 * float(frame_problems(a, *starts(8)).sum())  # and the fit did go far

@@ -208,6 +208,23 @@ def test_a_body_evaluation_never_waits_on_the_gpu(model, sample, monkeypatch, sh
     assert len(phases) == 3 and all(len(calls) > 3 for calls in phases) and waits.seen == [], waits.seen
 
 
+def test_body_fit_replayed_from_recordings_is_the_eager_fit(model, sample, replay_on_cpu):
+    """On CUDA every phase's evaluations and L-BFGS parts replay recorded graphs (`body.cuda_graphs`).
+    Replayed so on the CPU (`graph_replay`: a recording that read a tensor made anew, or kept a value
+    in Python, replays stale), the fit from a perturbed start is the eager fit bit for bit: the
+    phenotype fitted, the correspondences refreshed in place, per-frame and joint L-BFGS."""
+    cameras, cfg, params, _, frames, obs = frames_0_and_2(sample)
+    cfg = dataclasses.replace(cfg, orient_steps=2, pose_steps=2, full_steps=2, inner_iterations=4)
+    fitted = {}
+    for graphs in (False, True):
+        fitter = body.BodyFitter(model, cameras, dataclasses.replace(cfg, cuda_graphs=graphs))
+        fitted[graphs], _ = fitter.fit(obs, perturbed(params[frames]))
+        assert (len(replay_on_cpu) > 30) == graphs, len(replay_on_cpu)
+    for name, eager in fitted[False].tensors().items():
+        assert torch.equal(eager, fitted[True].tensors()[name]), name
+    assert not torch.equal(fitted[False].body_pose, perturbed(params[frames]).body_pose)
+
+
 def frame_2_fitter(model, sample) -> tuple[BodyParams, body.BodyObservations, body.BodyFitter]:
     """(true params, frame 2's observations, a body fitter with no floor) of the sample."""
     session = Session.load(sample)

@@ -4,6 +4,7 @@ Per-frame results are written from the ground truth (perturbed where a test
 says so), so each test knows exactly what the stage should produce."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -154,6 +155,40 @@ def test_a_window_evaluation_never_waits_on_the_gpu(sample, model, monkeypatch):
     fitted_every, R_every, centre_every, _ = fitter.fit_window(body, R, t + R @ shape.centroid, 1, every)
     assert torch.equal(centre, centre_every) and torch.equal(R_fit, R_every)
     assert torch.equal(fitted.body_pose, fitted_every.body_pose) and torch.equal(fitted.right_hand_pose, fitted_every.right_hand_pose)
+
+
+@pytest.mark.parametrize("line_search", ["strong_wolfe", "armijo"])
+def test_a_window_replayed_from_recordings_is_the_eager_fit(sample, model, replay_on_cpu, line_search):
+    """On CUDA a window's evaluations (and, with Armijo's search, the L-BFGS's parts) replay recorded
+    graphs (`global.cuda_graphs`). Replayed so on the CPU (`graph_replay`), the window's fit, the
+    correspondences refreshed in place, is the eager one bit for bit."""
+    cfg = load_config(overrides=["global.steps=4", "global.correspondence_every=2", f"global.line_search={line_search}"])
+    W, frame = 4, 16
+    body = BodyParams.from_numpy_dict({k: v[frame:frame + W] for k, v in gt_body().items()})
+    poses = np.load(GT / "object_poses.npz")
+    shape = ObjectShape(sample.object.load_mesh(), 40, sample.object.contact_vertices)
+    R = torch.as_tensor(poses["R"][frame:frame + W], dtype=torch.float32)
+    t = torch.as_tensor(poses["t"][frame:frame + W], dtype=torch.float32)
+    cameras = Cameras.from_infos(sample.cameras)
+    grasping = torch.tensor([[0, 1], [0, 1], [1, 1], [0, 0]], dtype=torch.float32)
+    data = window_data(exact_keypoints(model, body, cameras), R, t, shape, grasping, len(cameras), rows=True)
+    with torch.no_grad():  # depth points on the true surface, each view the same
+        surface = model(body).vertices[:, ::40]
+    data.obs.points = surface[:, None].expand(-1, len(cameras), -1, -1).contiguous()
+    data.obs.point_valid = torch.ones(data.obs.points.shape[:3], dtype=torch.bool)
+    body.transl += torch.tensor([0.03, 0.0, 0.0])  # the fits start 3 cm off: the correspondences change
+    t = t + torch.tensor([0.02, 0.0, 0.0])
+    fits = {}
+    for graphs in (False, True):
+        g = dataclasses.replace(cfg.global_, cuda_graphs=graphs)
+        fitter = GlobalFitter(model, cameras, cfg.body, g, shape, load_ground_from_gt(), sample.fps)
+        fits[graphs] = fitter.fit_window(body, R, t + R @ shape.centroid, 1, data)
+        assert (len(replay_on_cpu) > 10) == graphs, len(replay_on_cpu)
+    (eager, R_eager, centre_eager, _), (replayed, R_replayed, centre_replayed, _) = fits[False], fits[True]
+    assert torch.equal(R_eager, R_replayed) and torch.equal(centre_eager, centre_replayed)
+    for name, values in eager.tensors().items():
+        assert torch.equal(values, replayed.tensors()[name]), name
+    assert not torch.equal(centre_eager, t + R @ shape.centroid)
 
 
 def load_ground_from_gt():

@@ -358,6 +358,30 @@ def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_trac
     assert sum(len(calls) for calls in evaluators) > 20 and waits.seen == [], waits.seen
 
 
+def test_fits_replayed_from_recordings_are_the_eager_fits(sample_tracker, monkeypatch, replay_on_cpu):
+    """On CUDA each step of a fit in fixed shapes replays one recorded graph (`object.cuda_graphs`).
+    Replayed so on the CPU (`graph_replay`: a recording that read a tensor made anew replays stale),
+    the fits end where the eager ones do, as close as the fixed shapes' own arithmetic allows, also
+    when a later call with as many poses (other frames) replays the same recording."""
+    tracker, session, truth = sample_tracker
+    rng = np.random.default_rng(7)
+    rounds = []
+    for frames in ((5, 17, 26), (8, 12, 29)):
+        requests = []
+        for frame, iterations in zip(frames, (None, 8, None)):
+            R, t = truth["R"][frame], truth["t"][frame]
+            turn = axis_rotation(rng.normal(size=3) / np.sqrt(3), 8.0)
+            requests.append((tracker.observe(frame, (R, t)), turn @ R, t + rng.normal(scale=0.01, size=3), iterations))
+        rounds.append((requests, tracker.fit_many(requests)))
+    monkeypatch.setattr(tracker, "fixed_shapes", True)
+    monkeypatch.setattr(tracker, "_fixed_fits", {})
+    for requests, eager in rounds:
+        for a, b in zip(eager, tracker.fit_many(requests)):
+            assert abs(a.energy - b.energy) < 1e-5 * max(1.0, abs(a.energy)) and abs(a.confidence - b.confidence) < 1e-4
+            assert np.abs(a.R - b.R).max() < 1e-4 and np.abs(a.t - b.t).max() < 1e-5
+    assert len(replay_on_cpu) > 40
+
+
 def test_read_ahead_gives_the_observation_read_in_place(box_session, monkeypatch):
     """`ObjectTracker.read_ahead` (a GPU run reads the next frame while this one is fitted): with
     the session's masks, `observe` takes what was read ahead, the same as reading it then; off on

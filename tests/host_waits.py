@@ -64,14 +64,14 @@ class HostWaits(TorchDispatchMode):
 def watch_evaluations(monkeypatch) -> tuple[HostWaits, list[list]]:
     """Watch every function `optim.recorded` is given (what a GPU records), its calls after its first
     (the first runs eagerly on a GPU too, and fills the caches there): returns the `HostWaits` they
-    share and, per evaluation (energy and gradients: the functions named "evaluation"), the list of
-    its calls. The L-BFGS's other recorded parts (direction, verdict, step) are watched too."""
+    share and, per evaluation (energy and gradients: the functions whose name says they evaluate),
+    the list of its calls. The L-BFGS's other recorded parts (direction, verdict, step) are watched too."""
     waits, evaluators = HostWaits(), []
     real = optim.recorded
 
     def watched(fn, enabled, device):
         run, calls = real(fn, enabled, device), []
-        if fn.__name__ == "evaluation":
+        if "evaluat" in fn.__name__:
             evaluators.append(calls)
 
         def run_watched():

@@ -20,7 +20,6 @@ import math
 from dataclasses import dataclass
 from typing import Callable, Iterable
 
-import numpy as np
 import torch
 
 log = logging.getLogger(__name__)
@@ -408,27 +407,36 @@ class PairMemory:
 class AdamRows:
     """torch.optim.Adam's update for parameters whose rows are separate problems (P rows each): a
     row keeps its own step count and step-size scale (`scale`, 1 at first), and a step moves only
-    the rows named. With one row it is Adam itself."""
+    the rows named. With one row it is Adam itself. Its state lives on the parameters' device and
+    a step reads tensors only, so it can be part of a recorded CUDA graph (`recorded`)."""
 
     def __init__(self, params: list[torch.Tensor], lrs: list[float], rows: int,
                  betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-8):
         self.params, self.lrs, self.betas, self.eps = params, lrs, betas, eps
         self.moments = [(torch.zeros_like(p), torch.zeros_like(p)) for p in params]
-        self.count, self.scale = np.zeros(rows, int), np.ones(rows)
+        dev = params[0].device
+        self.count = torch.zeros(rows, dtype=torch.float64, device=dev)
+        self.scale = torch.ones(rows, dtype=torch.float64, device=dev)
 
     @torch.no_grad()
-    def step(self, rows: np.ndarray) -> None:
-        """One step of `rows` along the gradients in the parameters' .grad, which it then clears."""
+    def reset(self) -> None:
+        """Every row back to its first step (moments 0, count 0, scale 1), in place."""
+        for m, v in self.moments:
+            m.zero_()
+            v.zero_()
+        self.count.zero_()
+        self.scale.fill_(1.0)
+
+    @torch.no_grad()
+    def step(self, moving: torch.Tensor, grads: list[torch.Tensor]) -> None:
+        """One step of the rows where `moving` (P,) bool is set, along `grads` (one per parameter)."""
         b1, b2 = self.betas
-        self.count[rows] += 1
-        n = self.count[rows]
-        dev, dtype = self.params[0].device, self.params[0].dtype
-        size = torch.as_tensor(self.scale[rows] / (1 - b1 ** n), dtype=dtype, device=dev)[:, None]
-        root = torch.as_tensor(np.sqrt(1 - b2 ** n), dtype=dtype, device=dev)[:, None]
-        at = slice(None) if len(rows) == len(self.count) else torch.as_tensor(rows, device=dev)
-        for p, lr, (m, v) in zip(self.params, self.lrs, self.moments):
-            g = p.grad[at]
-            m[at] = m[at].lerp(g, 1 - b1)
-            v[at] = v[at] * b2 + (1 - b2) * g * g
-            p[at] = p[at] - (lr * size) * m[at] / (v[at].sqrt() / root + self.eps)
-            p.grad = None
+        self.count.add_(moving)
+        dtype = self.params[0].dtype
+        size = (self.scale / (1 - b1 ** self.count)).to(dtype)[:, None]  # bias corrections in float64, as a
+        root = (1 - b2 ** self.count).sqrt().to(dtype)[:, None]  # host computes them (infinite where count is 0)
+        for p, g, lr, (m, v) in zip(self.params, grads, self.lrs, self.moments):
+            on = moving.view(-1, *[1] * (p.dim() - 1))
+            m.copy_(torch.where(on, m.lerp(g, 1 - b1), m))
+            v.copy_(torch.where(on, v * b2 + (1 - b2) * g * g, v))
+            p.copy_(torch.where(on, p - (lr * size) * m / (v.sqrt() / root + self.eps), p))

@@ -455,7 +455,10 @@ class ObjectTracker:
                 self._fixed_fits[P] = FixedShapeFits(self, P)
             fixed = self._fixed_fits[P]
             fixed.load(obs_mask, obs_depth, obs_known, view_weight, crops, r6, t_c)
-            r6, t_c = fixed.r6, fixed.t_c
+            r6, t_c, adam = fixed.r6, fixed.t_c, fixed.adam
+        else:
+            adam = optim.AdamRows([r6, t_c], [cfg.lr_rotation, cfg.lr_translation], P)
+        stepping = np.zeros(P, bool)  # the rows whose step is taken before the next evaluation
 
         def energy(rows=None):
             """E_O of the fits `rows` (an index tensor; None: all), as (P,) tensors and the render."""
@@ -463,12 +466,11 @@ class ObjectTracker:
             return self.energy_terms(pick(obs_mask), pick(obs_depth), pick(obs_known), pick(view_weight),
                                      rotation_6d_to_matrix(pick(r6)), pick(t_c), pick(crops))
 
-        adam = optim.AdamRows([r6, t_c], [cfg.lr_rotation, cfg.lr_translation], P)
         best_value, best_r6, best_t = np.full(P, np.inf), r6.detach().clone(), t_c.detach().clone()
         while not done.all():
             live = np.flatnonzero(~done)
-            if fixed is not None:
-                values, total = fixed.evaluate()[0][live], None  # gradients in r6.grad, t_c.grad
+            if fixed is not None:  # the last iteration's step, then the evaluation
+                values, total = fixed.evaluate(stepping)[0][live], None
             else:
                 total = energy(None if len(live) == P else torch.as_tensor(live, device=dev))[0]
                 values = total.detach().cpu().numpy()
@@ -486,22 +488,24 @@ class ObjectTracker:
             if len(back):
                 decays[back] += 1
                 stalled[back] = 0
-                adam.scale[back] *= cfg.lr_decay
                 at = torch.as_tensor(back, device=dev)
                 with torch.no_grad():
+                    adam.scale[at] *= cfg.lr_decay
                     r6[at], t_c[at] = best_r6[at], best_t[at]
-            if not stop.all():
-                if total is not None:  # the eager path's gradients, of the rows that step
-                    steps = total if not stop.any() else total[torch.as_tensor(np.flatnonzero(~stop), device=dev)]
-                    steps.sum().backward()
-                adam.step(live[~stop])
+            stepping[:] = False
+            stepping[live[~stop]] = True
+            if total is not None and not stop.all():  # the eager path steps now, along the rows' gradients
+                steps = total if not stop.any() else total[torch.as_tensor(np.flatnonzero(~stop), device=dev)]
+                steps.sum().backward()
+                adam.step(torch.as_tensor(stepping, device=dev), [r6.grad, t_c.grad])
+                r6.grad = t_c.grad = None
             used[live] += 1
             done |= used >= budget
 
         def final():
-            """(E_O (P,), confidence (P,)) at the current poses."""
+            """(E_O (P,), confidence (P,)) at the current poses (after the last step)."""
             if fixed is not None:
-                return fixed.evaluate()
+                return fixed.evaluate(stepping)
             with torch.no_grad():
                 total, _, _, out = energy()
                 return total.cpu().numpy(), self.confidence(out, obs_mask, obs_depth, obs_known, view_weight).cpu().numpy()
@@ -512,6 +516,7 @@ class ObjectTracker:
             at = torch.as_tensor(np.flatnonzero(worse), device=dev)
             with torch.no_grad():
                 r6[at], t_c[at] = best_r6[at], best_t[at]
+            stepping[:] = False
             total, confidence = final()
         with torch.no_grad():
             R = rotation_6d_to_matrix(r6).double().cpu().numpy()
@@ -665,10 +670,11 @@ class ObjectTracker:
 
 class FixedShapeFits:
     """The object fits of P poses at once in fixed shapes (`ObjectTracker.fixed_shapes`): input
-    tensors that each `fit_many` call copies into, and one evaluation of E_O, its gradients, the
-    confidence and the render's counts recorded on them (`optim.gradient_evaluator`: on CUDA one
-    graph, recorded once and replayed by every later call). The render's capacity is sized from
-    the first poses and grows when a pose outgrows it (the graph is then recorded again)."""
+    tensors that each `fit_many` call copies into, and one Adam step (of the rows `moving`, along
+    the last evaluation's gradients) followed by one evaluation of E_O, its gradients, the
+    confidence and the render's counts, recorded on them (`optim.recorded`: on CUDA one graph,
+    recorded once and replayed by every later call). The render's capacity is sized from the
+    first poses and grows when a pose outgrows it (the graph is then recorded again)."""
 
     def __init__(self, tracker: ObjectTracker, P: int):
         self.tracker, self.P, self.capacity, self._evaluate = tracker, P, None, None
@@ -677,12 +683,18 @@ class FixedShapeFits:
         self.inputs += [torch.zeros(P, C, device=dev), torch.zeros(P, C, 4, device=dev)]  # view weights, crops
         self.r6 = torch.zeros(P, 6, device=dev, requires_grad=True)
         self.t_c = torch.zeros(P, 3, device=dev, requires_grad=True)
+        self.adam = optim.AdamRows([self.r6, self.t_c], [tracker.cfg.lr_rotation, tracker.cfg.lr_translation], P)
+        self.moving = torch.zeros(P, dtype=torch.bool, device=dev)
+        self.grads = [torch.zeros_like(self.r6), torch.zeros_like(self.t_c)]
+        self.values = torch.zeros(2 * P + 4, device=dev)
 
     @torch.no_grad()
     def load(self, *values) -> None:
-        """Copy a call's windows, view weights, crops and starting poses into the recorded tensors."""
+        """Copy a call's windows, view weights, crops and starting poses into the recorded tensors;
+        Adam starts afresh."""
         for target, value in zip(self.inputs + [self.r6, self.t_c], values):
             target.copy_(value)
+        self.adam.reset()
 
     def _terms(self, capacity: Capacity | None):
         """`ObjectTracker.energy_terms` of the current poses on the recorded inputs."""
@@ -696,21 +708,32 @@ class FixedShapeFits:
         confidence = self.tracker.confidence(out, *self.inputs[:4])
         return torch.cat([total, confidence.to(total.dtype), out.needed.to(total.dtype)])
 
-    def evaluate(self) -> tuple[np.ndarray, np.ndarray]:
-        """(E_O (P,), confidence (P,)) at the current poses, their gradients in r6.grad and t_c.grad."""
+    def _step_and_evaluate(self) -> None:
+        """The recorded work: Adam's step of the rows `moving`, then E_O and the rest at the new poses."""
+        self.adam.step(self.moving, self.grads)
+        values, grads = optim.energy_and_gradients([self.r6, self.t_c], self._outputs)
+        self.values.copy_(values)
+        for buffer, grad in zip(self.grads, grads):
+            buffer.copy_(grad)
+
+    def evaluate(self, stepping: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(E_O (P,), confidence (P,)) after a step of the rows `stepping` (P,) bool along the last
+        evaluation's gradients (the step is taken once, also when the render is sized again)."""
         P = self.P
+        self.moving.copy_(torch.from_numpy(stepping))
         while True:
             if self._evaluate is None:
                 with torch.no_grad():  # room for the current poses' render (and never less than before)
                     fitting = Capacity.fitting(self._terms(None)[3].needed)
                 self.capacity = fitting if self.capacity is None else Capacity(
                     *np.maximum(dataclasses.astuple(fitting), dataclasses.astuple(self.capacity)).tolist())
-                self._evaluate = optim.gradient_evaluator([self.r6, self.t_c], self._outputs, graph=True)
-            values, (self.r6.grad, self.t_c.grad) = self._evaluate()
-            values = values.cpu().numpy()
+                self._evaluate = optim.recorded(self._step_and_evaluate, True, self.r6.device)
+            self._evaluate()
+            values = self.values.cpu().numpy()
             if self.capacity.holds(values[2 * P:]):
                 return values[:P], values[P:2 * P]
-            self._evaluate = None  # a pose outgrew the shapes: size them again, evaluate again
+            self.moving.zero_()  # a pose outgrew the shapes: size them again, evaluate again (not stepping)
+            self._evaluate = None
 
 
 def run_searches(tracker: ObjectTracker, searches: list) -> list:

@@ -397,7 +397,12 @@ class AnnyBody(BodyModel):
         weights are sparse on the CPU (CUDA keeps the dense product, which it runs in one kernel)."""
         cache = self.__dict__.setdefault("_vertex_tables_cache", [])
         for source, ids, tables in cache:  # the same tensor object first: comparing values makes a GPU wait
-            if source is vertex_ids or (ids.shape == vertex_ids.shape and torch.equal(ids, vertex_ids)):
+            if source is vertex_ids:
+                return tables
+        for source, ids, tables in cache:  # the same values: kept under this tensor too, found by identity next
+            if ids.shape == vertex_ids.shape and torch.equal(ids, vertex_ids):
+                cache.insert(0, (vertex_ids, ids, tables))
+                del cache[6:]
                 return tables
         core = self.core
         ids = torch.cat([vertex_ids.to(self.fingertip_vertex_ids), self.fingertip_vertex_ids])
@@ -406,7 +411,7 @@ class AnnyBody(BodyModel):
             skin = SparseSkin.from_dense(skin)
         tables = (ids, skin, core.template_vertices[ids], core.blendshapes[:, ids].reshape(core.blendshapes.shape[0], -1))
         cache.insert(0, (vertex_ids, vertex_ids.clone(), tables))
-        del cache[4:]
+        del cache[6:]
         return tables
 
     def sparse_forward(self, params: BodyParams, vertex_ids: torch.Tensor, rest: "AnnyRest | None" = None) -> BodyOutput:

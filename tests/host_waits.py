@@ -62,25 +62,29 @@ class HostWaits(TorchDispatchMode):
 
 
 def watch_evaluations(monkeypatch) -> tuple[HostWaits, list[list]]:
-    """Watch every function `optim.recorded` is given (what a GPU records), its calls after its first
-    (the first runs eagerly on a GPU too, and fills the caches there): returns the `HostWaits` they
-    share and, per evaluation (energy and gradients: the functions whose name says they evaluate),
-    the list of its calls. The L-BFGS's other recorded parts (direction, verdict, step) are watched too."""
+    """Run the fits as where graphs are recorded (`optim.records_graphs`: the dense nearest-point
+    search, depth pairs of fixed size) and watch every function they would record (`optim.recorded`;
+    nothing is recorded here), its calls after its first (the first runs eagerly on a GPU too, and
+    fills the caches there): returns the `HostWaits` they share and, per evaluation (energy and
+    gradients: the functions whose name says they evaluate), the list of its calls. The L-BFGS's
+    other parts (direction, verdict, step) and the correspondence refreshes are watched too."""
     waits, evaluators = HostWaits(), []
-    real = optim.recorded
 
     def watched(fn, enabled, device):
-        run, calls = real(fn, enabled, device), []
+        if not enabled:
+            return fn
+        calls = []
         if "evaluat" in fn.__name__:
             evaluators.append(calls)
 
         def run_watched():
             calls.append(1)
             if len(calls) == 1:
-                return run()
+                return fn()
             with waits:
-                return run()
+                return fn()
         return run_watched
 
+    monkeypatch.setattr(optim, "records_graphs", lambda device: True)
     monkeypatch.setattr(optim, "recorded", watched)
     return waits, evaluators

@@ -105,8 +105,9 @@ def _nearest_per_view(queries: torch.Tensor, query_mask: torch.Tensor, targets: 
     each masked query (B, C, Q, 3); -1 for unmasked queries, none within `max_distance`, or no
     target. On the CPU a k-d tree per frame and view (scipy): a dense distance matrix costs 20x
     more there. On a GPU the dense matrix (`_nearest_dense`): a few kernels instead of copying to
-    the CPU and B x C trees (the H100's 150-frame bench spent 14 s of 169 in the trees)."""
-    if queries.is_cuda:
+    the CPU and B x C trees (the H100's 150-frame bench spent 14 s of 169 in the trees), and
+    recordable as a CUDA graph (`optim.records_graphs`)."""
+    if optim.records_graphs(queries.device):
         return _nearest_dense(queries, query_mask, targets, target_mask, max_distance)
     from scipy.spatial import cKDTree
 

@@ -414,22 +414,30 @@ def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
     return torch.nn.functional.normalize(normals.view(V, B, 3), dim=-1).transpose(0, 1)
 
 
+def visibility_rows(cameras: Cameras, cells: int) -> int:
+    """Rows of `visible_vertices`' z-buffer: its cells are square, `cells` across every view
+    (in float32, as the cells' size is)."""
+    cell = cameras.width.cpu().numpy().astype(np.float32) / np.float32(cells)
+    return int(np.ceil(cameras.height.cpu().numpy().astype(np.float32) / cell).max())
+
+
 def visible_vertices(
     vertices: torch.Tensor, normals: torch.Tensor, subset: torch.Tensor, cameras: Cameras,
-    cells: int, margin: float,
+    cells: int, margin: float, rows: int | None = None,
 ) -> torch.Tensor:
     """(B, C, N) bool: which of the `subset` vertices each view sees. A coarse z-buffer of all
-    the given vertices (cells x cells*H/W grid) plus the normal facing the camera; no gradient."""
+    the given vertices (cells x cells*H/W grid) plus the normal facing the camera; no gradient.
+    `rows`: `visibility_rows` of these cameras (given, nothing here waits on a GPU)."""
     with torch.no_grad():
         B, V, _ = vertices.shape
         C = len(cameras)
         pix, z = project(vertices.reshape(1, B * V, 3).expand(C, -1, -1), cameras)  # (C, BV, 2), (C, BV)
         cell = (cameras.width.to(pix.dtype) / cells)[:, None, None]
         grid_w = cells
-        grid_h = int(torch.ceil((cameras.height.to(pix.dtype) / cell[:, 0, 0]).max()))
+        grid_h = visibility_rows(cameras, cells) if rows is None else rows
         uv = torch.floor(pix / cell).long()
         inside = (z > 0.05) & (uv[..., 0] >= 0) & (uv[..., 0] < grid_w) & (uv[..., 1] >= 0) & (uv[..., 1] < grid_h)
-        frame = torch.arange(B, device=vertices.device).repeat_interleave(V)[None].expand(C, -1)
+        frame = torch.div(torch.arange(B * V, device=vertices.device), V, rounding_mode="floor")[None].expand(C, -1)
         key = (frame * grid_h + uv[..., 1].clamp(0, grid_h - 1)) * grid_w + uv[..., 0].clamp(0, grid_w - 1)
         zbuf = torch.full((C, B * grid_h * grid_w), float("inf"), dtype=z.dtype, device=z.device)
         zbuf.scatter_reduce_(1, key, torch.where(inside, z, torch.full_like(z, float("inf"))), "amin")
@@ -557,6 +565,7 @@ class BodyFitter:
         orient[ORIENT_KEYPOINTS] = 1.0
         self.orient_weights = orient
         self.subset = model.fitting_subsample.to(cameras.K.device)
+        self.visibility_rows = visibility_rows(cameras, cfg.visibility_cells)
         # E_D's correspondences need the fitting vertices' normals, so the faces round them and
         # those faces' vertices (~45 % of the mesh, spread as evenly as the subset): the model is
         # skinned there only, and the same vertices fill the visibility test's coarse z-buffer.
@@ -707,7 +716,7 @@ class BodyFitter:
             ring = self.model.sparse_forward(params, self.ring_vertices, ring_rest).vertices  # (B, R, 3)
             normals = vertex_normals(ring, self.ring_faces)  # exact at the fitting vertices (all their faces are here)
             visible = visible_vertices(ring, normals, self.subset_in_ring, self.cameras,
-                                       self.cfg.visibility_cells, self.cfg.visibility_margin_m)
+                                       self.cfg.visibility_cells, self.cfg.visibility_margin_m, self.visibility_rows)
             vertices = ring[:, self.subset_in_ring]
             nearest = losses.nearest_visible_vertices(obs.points, vertices, visible)
             to_vertices = None
@@ -788,10 +797,15 @@ class BodyFitter:
 
             graph = self.cfg.cuda_graphs and optim.records_graphs(device)  # each phase's evaluations: one recorded graph
 
+            def find_pairs():  # recorded too: the pairs are then refreshed in place
+                state["matches"] = state["matches"].refreshed(
+                    self.correspondences(current(), obs, state["ring_rest"]), graph)
+
+            refresh_pairs = optim.recorded(find_pairs, graph, device)
+
             def refresh(step, value):
                 if "depth" in phase.terms:
-                    state["matches"] = state["matches"].refreshed(
-                        self.correspondences(current(), obs, state["ring_rest"]), graph)
+                    refresh_pairs()
                 if monitor is not None:
                     monitor(phase.name, step, value)
 

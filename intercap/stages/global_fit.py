@@ -444,10 +444,15 @@ class GlobalFitter:
         # window (its term picks each episode's frames on the CPU)
         graph = g.cuda_graphs and optim.records_graphs(R0.device) and (self.gravity is None or data.flight is None)
 
+        def find_pairs():  # recorded too: the pairs are then refreshed in place
+            state["matches"] = state["matches"].refreshed(
+                self.body.correspondences(current()[0].detach(), data.obs), graph)
+
+        refresh_pairs = optim.recorded(find_pairs, graph, R0.device)
+
         def refresh(step, value):
             if step % max(1, g.correspondence_every) == 0:
-                state["matches"] = state["matches"].refreshed(
-                    self.body.correspondences(current()[0].detach(), data.obs), graph)
+                refresh_pairs()
             if monitor is not None:
                 monitor(step, value)
 

@@ -57,7 +57,8 @@ US_PER_KERNEL_H100 = 25.0  # the sample's stages on one H100 (2026-11-26): secon
 class OperationCount(TorchDispatchMode):
     """Counts the aten operations dispatched while active; kernels by the intercap function issuing
     them. Kernels of evaluations a GPU replays from a recorded CUDA graph (`replaying`) count apart
-    (`in_graphs`, and one launch per replay in `replays`)."""
+    (`in_graphs`, and one launch per replay in `replays`); those by issuing function too, or for the
+    backward passes by autograd node (`graph_sites`): what a fused evaluation would have to cut."""
 
     def __init__(self):
         super().__init__()
@@ -65,6 +66,7 @@ class OperationCount(TorchDispatchMode):
         self.replaying = False
         self.sites = collections.Counter()
         self.wait_sites = collections.Counter()
+        self.graph_sites = collections.Counter()
 
     def __torch_dispatch__(self, func, types, args=(), kwargs=None):
         self.all += 1
@@ -76,6 +78,9 @@ class OperationCount(TorchDispatchMode):
             pass
         elif self.replaying:
             self.in_graphs += 1
+            node = torch._C._current_autograd_node()
+            self.graph_sites[f"backward {node.name()}" if node is not None
+                             else issuing_function(sys._getframe(1))] += 1
         else:
             self.kernels += 1
             if torch._C._current_autograd_node() is not None:
@@ -197,6 +202,10 @@ def main(argv=None) -> None:
         print(f"{name}: host waits per frame by issuing function")
         for site, n in c.wait_sites.most_common(args.sites):
             print(f"  {n / T:8.1f}  {site}")
+        if c.graph_sites:
+            print(f"{name}: kernels inside the graphs per frame by issuing function (backward: by autograd node)")
+            for site, n in c.graph_sites.most_common(args.sites):
+                print(f"  {n / T:8.0f}  {site}")
 
 
 if __name__ == "__main__":

@@ -436,21 +436,32 @@ class AnnyBody(BodyModel):
 
     def _openpose_keypoints(self, coco: torch.Tensor, joints: torch.Tensor, tips: torch.Tensor) -> torch.Tensor:
         """(B, 67, 3) from the COCO+feet regression (B, 23, 3), bone heads (B, J, 3) and the ten
-        fingertip vertices (B, 10, 3): BODY_25 from the regressor, hands from finger bones and tips."""
-        named = {label: coco[:, i] for i, label in enumerate(self._coco_labels)}
-        named["neck"] = (named["left_shoulder"] + named["right_shoulder"]) / 2
-        named["mid_hip"] = (named["left_hip"] + named["right_hip"]) / 2
-        # The wrist bone head, not the regressed surface point, so finger poses leave it alone.
-        named["left_wrist"] = joints[:, self._index["wrist.L"]]
-        named["right_wrist"] = joints[:, self._index["wrist.R"]]
-        body = torch.stack([named[COCO_TO_BODY25.get(n, n)] for n in BODY_25], dim=1)  # (B, 25, 3)
-        hands = []
-        for s, side in enumerate(SIDES):
-            points = [named["left_wrist" if side == "L" else "right_wrist"]]
-            for f, finger in enumerate(FINGERS):
-                chain = FINGER_BONES[finger]
-                for k in (1, 2, 3):
-                    points.append(joints[:, self._index[f"{chain}-{k}.{side}"]])
-                points.append(tips[:, 5 * s + f])
-            hands.append(torch.stack(points, dim=1))  # (B, 21, 3)
-        return torch.cat([body] + hands, dim=1)
+        fingertip vertices (B, 10, 3): BODY_25 from the regressor, hands from finger bones and tips.
+        One gather (`_keypoint_sources`): picking the 67 one by one cost ~130 kernels a backward pass."""
+        labels = self._coco_labels
+        left_shoulder, right_shoulder = labels.index("left_shoulder"), labels.index("right_shoulder")
+        left_hip, right_hip = labels.index("left_hip"), labels.index("right_hip")
+        neck = (coco[:, left_shoulder] + coco[:, right_shoulder]) / 2
+        mid_hip = (coco[:, left_hip] + coco[:, right_hip]) / 2
+        sources = torch.cat([coco, joints, tips, neck[:, None], mid_hip[:, None]], dim=1)
+        return sources.index_select(1, self._keypoint_sources(joints.shape[1], coco.device))
+
+    def _keypoint_sources(self, bones: int, device: torch.device) -> torch.Tensor:
+        """(67,) row of each keypoint in `_openpose_keypoints`' sources: the regressed points, the
+        bone heads (the wrist's head, not the regressed surface point, so finger poses leave it
+        alone), the fingertips, then the neck and the mid hip (means of the shoulders, the hips)."""
+        cache = self.__dict__.setdefault("_keypoint_sources_cache", {})
+        if (bones, device) not in cache:
+            regressed = len(self._coco_labels)
+            tips = regressed + bones
+            named = {label: i for i, label in enumerate(self._coco_labels)}
+            named.update(neck=tips + 10, mid_hip=tips + 11, left_wrist=regressed + self._index["wrist.L"],
+                         right_wrist=regressed + self._index["wrist.R"])
+            rows = [named[COCO_TO_BODY25.get(n, n)] for n in BODY_25]
+            for s, side in enumerate(SIDES):
+                rows.append(named["left_wrist" if side == "L" else "right_wrist"])
+                for f, finger in enumerate(FINGERS):
+                    rows += [regressed + self._index[f"{FINGER_BONES[finger]}-{k}.{side}"] for k in (1, 2, 3)]
+                    rows.append(tips + 5 * s + f)
+            cache[(bones, device)] = torch.tensor(rows, device=device)
+        return cache[(bones, device)]

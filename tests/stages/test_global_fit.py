@@ -131,12 +131,10 @@ def test_contact_closes_a_3cm_gap_only_in_contact_frames(sample, model):
     assert stats["after"]["contact"] < 0.05 * stats["before"]["contact"]
 
 
-def test_a_window_evaluation_never_waits_on_the_gpu(sample, model, monkeypatch):
-    """Every evaluation of a window's fit after its first is recordable as a CUDA graph
-    (`gradient_evaluator`): it issues no operation that waits on the GPU."""
-    from host_waits import watch_evaluations
-
-    cfg = load_config(overrides=["global.steps=3"])
+def grasping_window(sample, model):
+    """The sample's frames 16-19 at their true poses, the right hand grasping in the first three
+    and the left in the third: (body, R, t, object shape, cameras, grasping (4, 2), keypoint-only
+    `WindowData` with the grasping rows found beforehand)."""
     W, frame = 4, 16
     body = BodyParams.from_numpy_dict({k: v[frame:frame + W] for k, v in gt_body().items()})
     poses = np.load(GT / "object_poses.npz")
@@ -144,9 +142,19 @@ def test_a_window_evaluation_never_waits_on_the_gpu(sample, model, monkeypatch):
     R = torch.as_tensor(poses["R"][frame:frame + W], dtype=torch.float32)
     t = torch.as_tensor(poses["t"][frame:frame + W], dtype=torch.float32)
     cameras = Cameras.from_infos(sample.cameras)
-    fitter = GlobalFitter(model, cameras, cfg.body, cfg.global_, shape, load_ground_from_gt(), sample.fps)
     grasping = torch.tensor([[0, 1], [0, 1], [1, 1], [0, 0]], dtype=torch.float32)
     data = window_data(exact_keypoints(model, body, cameras), R, t, shape, grasping, len(cameras), rows=True)
+    return body, R, t, shape, cameras, grasping, data
+
+
+def test_a_window_evaluation_never_waits_on_the_gpu(sample, model, monkeypatch):
+    """Every evaluation of a window's fit after its first is recordable as a CUDA graph
+    (`gradient_evaluator`): it issues no operation that waits on the GPU."""
+    from host_waits import watch_evaluations
+
+    cfg = load_config(overrides=["global.steps=3"])
+    body, R, t, shape, cameras, grasping, data = grasping_window(sample, model)
+    fitter = GlobalFitter(model, cameras, cfg.body, cfg.global_, shape, load_ground_from_gt(), sample.fps)
     waits, evaluators = watch_evaluations(monkeypatch)
     fitted, R_fit, centre, _ = fitter.fit_window(body, R, t + R @ shape.centroid, 1, data)
     assert len(evaluators) == 1 and len(evaluators[0]) > 3 and waits.seen == [], waits.seen
@@ -163,15 +171,7 @@ def test_a_window_replayed_from_recordings_is_the_eager_fit(sample, model, repla
     graphs (`global.cuda_graphs`). Replayed so on the CPU (`graph_replay`), the window's fit, the
     correspondences refreshed in place, is the eager one bit for bit."""
     cfg = load_config(overrides=["global.steps=4", "global.correspondence_every=2", f"global.line_search={line_search}"])
-    W, frame = 4, 16
-    body = BodyParams.from_numpy_dict({k: v[frame:frame + W] for k, v in gt_body().items()})
-    poses = np.load(GT / "object_poses.npz")
-    shape = ObjectShape(sample.object.load_mesh(), 40, sample.object.contact_vertices)
-    R = torch.as_tensor(poses["R"][frame:frame + W], dtype=torch.float32)
-    t = torch.as_tensor(poses["t"][frame:frame + W], dtype=torch.float32)
-    cameras = Cameras.from_infos(sample.cameras)
-    grasping = torch.tensor([[0, 1], [0, 1], [1, 1], [0, 0]], dtype=torch.float32)
-    data = window_data(exact_keypoints(model, body, cameras), R, t, shape, grasping, len(cameras), rows=True)
+    body, R, t, shape, cameras, _, data = grasping_window(sample, model)
     with torch.no_grad():  # depth points on the true surface, each view the same
         surface = model(body).vertices[:, ::40]
     data.obs.points = surface[:, None].expand(-1, len(cameras), -1, -1).contiguous()

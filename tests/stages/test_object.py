@@ -316,6 +316,21 @@ def test_chunks_side_by_side_resume_where_each_stopped(box_session, tmp_path):
     assert np.allclose(resumed["t"][1:], full["t"][1:], atol=1e-6, equal_nan=True)
 
 
+def eager_rounds(tracker, truth, seed: int, frame_sets) -> list:
+    """Per set of three frames, (requests, eager fits): each fit starts 8 degrees and about 1 cm
+    off the true pose, the second with an 8-step budget; all three fitted at once (`fit_many`)."""
+    rng = np.random.default_rng(seed)
+    rounds = []
+    for frames in frame_sets:
+        requests = []
+        for frame, iterations in zip(frames, (None, 8, None)):
+            R, t = truth["R"][frame], truth["t"][frame]
+            turn = axis_rotation(rng.normal(size=3) / np.sqrt(3), 8.0)
+            requests.append((tracker.observe(frame, (R, t)), turn @ R, t + rng.normal(scale=0.01, size=3), iterations))
+        rounds.append((requests, tracker.fit_many(requests)))
+    return rounds
+
+
 def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_tracker, monkeypatch):
     """`fixed_shapes` (what a GPU records as one CUDA graph): every step renders all poses in
     fixed shapes. The fits end where the eager ones do, also when a pose outgrows its shapes
@@ -327,15 +342,7 @@ def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_trac
     from intercap.geometry import rendering
 
     tracker, session, truth = sample_tracker
-    rng = np.random.default_rng(5)
-    rounds = []
-    for frames in ((4, 16, 25), (7, 13, 28)):
-        requests = []
-        for frame, iterations in zip(frames, (None, 8, None)):
-            R, t = truth["R"][frame], truth["t"][frame]
-            turn = axis_rotation(rng.normal(size=3) / np.sqrt(3), 8.0)
-            requests.append((tracker.observe(frame, (R, t)), turn @ R, t + rng.normal(scale=0.01, size=3), iterations))
-        rounds.append((requests, tracker.fit_many(requests)))
+    rounds = eager_rounds(tracker, truth, 5, ((4, 16, 25), (7, 13, 28)))
     sized = []
     fitting = rendering.Capacity.fitting.__func__
 
@@ -364,15 +371,7 @@ def test_fits_replayed_from_recordings_are_the_eager_fits(sample_tracker, monkey
     the fits end where the eager ones do, as close as the fixed shapes' own arithmetic allows, also
     when a later call with as many poses (other frames) replays the same recording."""
     tracker, session, truth = sample_tracker
-    rng = np.random.default_rng(7)
-    rounds = []
-    for frames in ((5, 17, 26), (8, 12, 29)):
-        requests = []
-        for frame, iterations in zip(frames, (None, 8, None)):
-            R, t = truth["R"][frame], truth["t"][frame]
-            turn = axis_rotation(rng.normal(size=3) / np.sqrt(3), 8.0)
-            requests.append((tracker.observe(frame, (R, t)), turn @ R, t + rng.normal(scale=0.01, size=3), iterations))
-        rounds.append((requests, tracker.fit_many(requests)))
+    rounds = eager_rounds(tracker, truth, 7, ((5, 17, 26), (8, 12, 29)))
     monkeypatch.setattr(tracker, "fixed_shapes", True)
     monkeypatch.setattr(tracker, "_fixed_fits", {})
     for requests, eager in rounds:

@@ -69,6 +69,81 @@ def interpolation_weights(value: torch.Tensor, anchors: torch.Tensor, extrapolat
     return weights.scatter(1, lower, 1.0 - alpha).scatter(1, upper, alpha)
 
 
+ANNY_PHENOTYPE_WEIGHTS: list = []  # anny's own `phenotype_blendshape_weights`, once replaced (the tests compare)
+
+
+@dataclass(frozen=True)
+class PhenotypeTable:
+    """`phenotype_weights`' constants for one label set, device and dtype: the interpolated
+    phenotypes' anchors side by side, padded with +inf (F, N), their ends and last index (F,), where
+    each feature's value comes from (the parameter's column, or a 0.5 column appended for an
+    unexposed label) and where each of anny's variations sits in the weights laid out flat."""
+
+    anchors: torch.Tensor  # (F, N)
+    first: torch.Tensor  # (F,)
+    last: torch.Tensor  # (F,)
+    top: torch.Tensor  # (F,) long: the last anchor's index
+    offsets: torch.Tensor  # (F,) long: F * N layout of the anchors, flat
+    sources: torch.Tensor  # (F + 3,) long: interpolated features, then the three races
+    columns: torch.Tensor  # (V,) long: each variation in [interpolated (F * N) | races (3)]
+
+
+def _phenotype_table(labels: tuple, anchors, device, dtype) -> PhenotypeTable:
+    from anny.models.model_data import PHENOTYPE_VARIATIONS
+
+    features = [f for f in PHENOTYPE_VARIATIONS if f != "race"]
+    races = tuple(PHENOTYPE_VARIATIONS["race"])
+    N = max(len(PHENOTYPE_VARIATIONS[f]) for f in features)
+    table = torch.full((len(features), N), float("inf"), dtype=dtype, device=device)
+    for i, f in enumerate(features):
+        table[i, :len(PHENOTYPE_VARIATIONS[f])] = anchors[f].to(device=device, dtype=dtype)
+    sizes = torch.tensor([len(PHENOTYPE_VARIATIONS[f]) for f in features], device=device)
+    sources = [labels.index(k) if k in labels else len(labels) for k in (*features, *races)]
+    place = {key: i * N + j for i, f in enumerate(features) for j, key in enumerate(PHENOTYPE_VARIATIONS[f])}
+    place.update({key: len(features) * N + j for j, key in enumerate(races)})
+    columns = [place[key] for keys in PHENOTYPE_VARIATIONS.values() for key in keys]
+    long = lambda v: torch.as_tensor(v, dtype=torch.long, device=device)  # noqa: E731
+    return PhenotypeTable(table, table[:, 0].clone(), table.gather(1, (sizes - 1)[:, None])[:, 0],
+                          sizes - 1, long(range(0, len(features) * N, N)), long(sources), long(columns))
+
+
+def phenotype_weights(phenotype_parameters: torch.Tensor, phenotype_labels: list[str], anchors,
+                      stacked_phenotype_blend_shapes_mask: torch.Tensor, extrapolate: bool) -> torch.Tensor:
+    """anny's `phenotype_blendshape_weights` ((B, labels) phenotypes -> (B, K) blend shape
+    coefficients), every interpolated phenotype at once: anny interpolates them one after another
+    and picks each variation apart, about 300 kernels forward and backward on every evaluation
+    while the shape is fitted; this is about 40. The same floating-point operations on the same
+    numbers, so values and gradients are anny's, bit for bit (tested)."""
+    labels = tuple(phenotype_labels)
+    key = (labels, phenotype_parameters.device, phenotype_parameters.dtype)
+    cache = _PHENOTYPE_TABLES.get(id(anchors))
+    if cache is None or cache[0] is not anchors:
+        cache = _PHENOTYPE_TABLES[id(anchors)] = (anchors, {})
+    table = cache[1].get(key)
+    if table is None:  # made on the first (eager) evaluation, before any recording
+        table = cache[1][key] = _phenotype_table(labels, anchors, *key[1:])
+    B = phenotype_parameters.shape[0]
+    values = torch.cat([phenotype_parameters, phenotype_parameters.new_full((B, 1), 0.5)], 1)[:, table.sources]
+    value, race = values[:, :len(table.first)], values[:, len(table.first):]
+    if not extrapolate:
+        value = torch.where(value < table.first, table.first, value)
+        value = torch.where(value > table.last, table.last, value)
+    upper = (table.anchors < value[..., None]).sum(-1).clamp(min=torch.ones_like(table.top), max=table.top)  # searchsorted, left
+    lower = upper - 1
+    flat = table.anchors.flatten()
+    low_anchor, up_anchor = flat[lower + table.offsets], flat[upper + table.offsets]
+    alpha = ((value - low_anchor) / (up_anchor - low_anchor))[..., None]
+    weights = torch.zeros(*value.shape, table.anchors.shape[1], dtype=value.dtype, device=value.device)
+    weights = weights.scatter(2, lower[..., None], 1.0 - alpha).scatter(2, upper[..., None], alpha)
+    race = torch.nan_to_num(race / torch.sum(race, dim=1, keepdim=True), 1 / 3, 1 / 3, 1 / 3)
+    phens = torch.cat([weights.flatten(1), race], 1)[:, table.columns]
+    mask = stacked_phenotype_blend_shapes_mask.unsqueeze(0)
+    return torch.prod(phens.unsqueeze(1) * mask + (1 - mask), dim=-1)
+
+
+_PHENOTYPE_TABLES: dict = {}
+
+
 def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
     """Construct the anny model, building its cache under `cache_dir` the first time."""
     import anny
@@ -79,6 +154,12 @@ def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
     if original.__module__.startswith("anny"):  # not replaced yet (see `interpolation_weights`)
         ANNY_INTERPOLATION.append(original)
         anny.utils.interpolation.linear_interpolation_coefficients = interpolation_weights
+    import anny.models.phenotype
+
+    original = anny.models.phenotype.phenotype_blendshape_weights
+    if original.__module__.startswith("anny"):  # not replaced yet (see `phenotype_weights`)
+        ANNY_PHENOTYPE_WEIGHTS.append(original)
+        anny.models.phenotype.phenotype_blendshape_weights = phenotype_weights
 
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
@@ -160,9 +241,11 @@ class AnnyRest:
     bones: torch.Tensor  # (B, J, 4, 4) rest bone frames
     vertices: torch.Tensor  # (B, n + 10, 3) rest positions of the vertices and the ten fingertips
     folded_regressor: torch.Tensor  # (B, K, J', 3) the COCO regressor folded through skinning and blend shapes
+    offsets: torch.Tensor  # (B, J, 4, 4) each bone's link from its parent but the pose (`AnnyBody.bone_transforms`)
 
     def select(self, index) -> "AnnyRest":
-        return AnnyRest(self.vertex_ids, self.skin, self.bones[index], self.vertices[index], self.folded_regressor[index])
+        return AnnyRest(self.vertex_ids, self.skin, self.bones[index], self.vertices[index], self.folded_regressor[index],
+                        self.offsets[index])
 
 
 class AnnyBody(BodyModel):
@@ -187,6 +270,25 @@ class AnnyBody(BodyModel):
         for side in SIDES:
             ids = [index[f"{h}.{side}"] for h in self.hand_joint_names]
             self.register_buffer(f"hand_bone_ids_{side}", torch.tensor(ids))
+        posed = [*self.body_joint_names, *(f"{h}.{side}" for side in SIDES for h in self.hand_joint_names)]
+        sources = torch.zeros(len(labels), dtype=torch.long)  # 0: a zero rotation vector (the root)
+        sources[[index[b] for b in posed]] = torch.arange(1, len(posed) + 1)
+        self.register_buffer("pose_sources", sources)  # each bone's rotation vector in `bone_rotations`' table
+        corner = torch.zeros(4, 4, dtype=dtype)
+        corner[3, 3] = 1.0
+        self.register_buffer("homogeneous_corner", corner)
+        self.register_buffer("homogeneous_eye", torch.eye(4, dtype=dtype))
+        parent = core.kinematic_chain_indices[3].clone()  # the root: itself
+        self.register_buffer("bone_parent", parent)
+        U = core.reference_bone_orientations
+        self.register_buffer("parent_orientations_t", U[parent].mT.contiguous())  # U_p^T
+        ancestors, J = [], len(parent)
+        step = torch.cat([parent.clone(), torch.tensor([J])])
+        step[0] = J  # above the root: the sentinel
+        while bool((step[:J] < J).any()):  # 2^k-th ancestors until every bone's lies above the root
+            ancestors.append(step)
+            step = step[step]
+        self.register_buffer("bone_ancestors", torch.stack(ancestors))  # (S, J + 1)
         self.register_buffer("faces", core.get_triangular_faces().long())
 
         coco = anny.KeypointsRegressor.coco(core)
@@ -338,20 +440,17 @@ class AnnyBody(BodyModel):
         return "body", self.body_joint_names.index(joint)
 
     def bone_rotations(self, params: BodyParams) -> torch.Tensor:
-        """(B, 104, 3, 3) local rotations for every bone; the root stays identity."""
-        batch = params.batch_size
-        rotations = torch.eye(3, dtype=self.dtype, device=self.faces.device).repeat(batch, len(self.joint_names), 1, 1)
-        rotations = rotations.index_copy(1, self.body_bone_ids, axis_angle_to_matrix(params.body_pose))
-        rotations = rotations.index_copy(1, self.hand_bone_ids_L, axis_angle_to_matrix(params.left_hand_pose))
-        rotations = rotations.index_copy(1, self.hand_bone_ids_R, axis_angle_to_matrix(params.right_hand_pose))
-        return rotations
+        """(B, 104, 3, 3) local rotations for every bone; the root stays identity. Body and hands
+        in one Rodrigues pass (each on its own, with the copies into place, cost ~150 kernels an
+        evaluation, forward and backward); a zero rotation vector gives the identity exactly."""
+        pose = params.body_pose
+        rotvecs = torch.cat([pose.new_zeros(pose.shape[0], 1, 3), pose, params.left_hand_pose,
+                             params.right_hand_pose], 1)
+        return axis_angle_to_matrix(rotvecs.index_select(1, self.pose_sources))
 
     def _pose_matrices(self, params: BodyParams) -> torch.Tensor:
-        rotations = self.bone_rotations(params)  # (B, J, 3, 3)
-        homogeneous = torch.zeros(*rotations.shape[:2], 4, 4, dtype=self.dtype, device=rotations.device)
-        homogeneous[..., :3, :3] = rotations
-        homogeneous[..., 3, 3] = 1.0
-        return homogeneous
+        """(B, 104, 4, 4) homogeneous `bone_rotations`."""
+        return torch.nn.functional.pad(self.bone_rotations(params), (0, 1, 0, 1)) + self.homogeneous_corner
 
     def forward(self, params: BodyParams) -> BodyOutput:
         out = self.core(self._pose_matrices(params), phenotype_kwargs=params.shape, facial_actions=params.expression)
@@ -386,7 +485,19 @@ class AnnyBody(BodyModel):
         ids, skin, template, blend = self._vertex_tables(vertex_ids)
         rest_vertices = template[None] + (coeffs @ blend).view(B, -1, 3)
         folded = self.coco_rest[None] + (coeffs @ self._coco_blend_flat).view(B, *self.coco_rest.shape)  # (B, K, J, 3)
-        return AnnyRest(vertex_ids, skin, rest, rest_vertices, folded)
+        return AnnyRest(vertex_ids, skin, rest, rest_vertices, folded, self._link_offsets(rest))
+
+    def _link_offsets(self, rest: torch.Tensor) -> torch.Tensor:
+        """(B, J, 4, 4) from the rest bone frames (B, J, 4, 4): [0 | U_p^T q_c] with a 1 in the
+        corner, q_c = A_p (h_c - h_p) the reference head offset from the parent p (A_p = U_p R_p^T,
+        A_root = I; U the reference orientations, R, h the rest frames): what `bone_transforms`
+        adds to each bone's posed rotation to link it to its parent (anny's 'local-ref' chain)."""
+        R, h = rest[..., :3, :3], rest[..., :3, 3]
+        parent = self.bone_parent
+        A = self.core.reference_bone_orientations @ R.mT
+        A = torch.cat([torch.eye(3, dtype=A.dtype, device=A.device).expand_as(A[:, :1]), A[:, 1:]], 1)
+        link = self.parent_orientations_t @ A[:, parent] @ (h - h[:, parent])[..., None]  # (B, J, 3, 1)
+        return torch.nn.functional.pad(link, (3, 0, 0, 1)) + self.homogeneous_corner
 
     def _vertex_tables(self, vertex_ids: torch.Tensor) -> tuple[torch.Tensor, ...]:
         """`rest_state`'s gathers for `vertex_ids` and the fingertips (ids, skinning weights, template
@@ -424,7 +535,7 @@ class AnnyBody(BodyModel):
             return super().sparse_forward(params, vertex_ids)
         if rest is None:
             rest = self.rest_state(params, vertex_ids)
-        transforms, bone_poses = self.core.get_bone_transforms(self._pose_matrices(params), rest.bones)  # (B, J, 4, 4)
+        transforms, bone_poses = self.bone_transforms(params, rest)  # (B, J, 4, 4)
         vertices = skin_vertices(rest.skin, transforms[..., :3, :], rest.vertices)  # (B, n, 3)
         used = transforms[:, self.coco_bones]
         coco = (torch.einsum("bjde,bkje->bkd", used[..., :3, :3], rest.folded_regressor)
@@ -433,6 +544,25 @@ class AnnyBody(BodyModel):
         n = len(rest.vertex_ids)
         keypoints = self._openpose_keypoints(coco, joints, vertices[:, n:])
         return self.world_output(vertices[:, :n], joints, keypoints, params)
+
+    def bone_transforms(self, params: BodyParams, rest: "AnnyRest") -> tuple[torch.Tensor, torch.Tensor]:
+        """anny's forward kinematics ('local-ref', `get_bone_transforms`): (B, J, 4, 4) skinning
+        transforms T_c and posed bone frames W_c, W_c = W_p K_c with K_c = [U_p^T D_c U_c | U_p^T q_c]
+        (D_c the pose's rotation; the root its own parent, q_root = 0, which makes K_root = W_root).
+
+        The chain by pointer doubling: each bone's product with its 2^k-th ancestor's, five
+        batched products for anny's 17 levels (anny takes one per level: about 50 kernels
+        forward and 100 backward an evaluation against 10 and 30); the rest-dependent link
+        offsets come with the rest state (`_link_offsets`)."""
+        U = self.core.reference_bone_orientations
+        links = torch.nn.functional.pad(self.parent_orientations_t @ self.bone_rotations(params) @ U, (0, 1, 0, 1))
+        chain = torch.cat([links + rest.offsets, self.homogeneous_eye.expand(len(links), 1, 4, 4)], 1)
+        for ancestors in self.bone_ancestors:  # the sentinel row (index J) is the identity, its own ancestor
+            chain = chain.index_select(1, ancestors) @ chain
+        poses = chain[:, :-1]
+        rotations = poses[..., :3, :3] @ rest.bones[..., :3, :3].mT  # T_c = W_c P_c^-1
+        translations = poses[..., :3, 3:] - rotations @ rest.bones[..., :3, 3:]
+        return torch.cat([torch.cat([rotations, translations], -1), poses[..., 3:, :]], -2), poses
 
     def _openpose_keypoints(self, coco: torch.Tensor, joints: torch.Tensor, tips: torch.Tensor) -> torch.Tensor:
         """(B, 67, 3) from the COCO+feet regression (B, 23, 3), bone heads (B, J, 3) and the ten

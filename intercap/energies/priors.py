@@ -536,8 +536,12 @@ def joint_angle_names() -> list[str]:
 
 def joint_limit_excess(body_pose: torch.Tensor) -> torch.Tensor:
     """(B, R, 3) radians beyond each range (0 inside, positive on either side)."""
-    a = _anatomy_like(body_pose)
-    angles = joint_angles(body_pose)
+    return excess_of_angles(joint_angles(body_pose))
+
+
+def excess_of_angles(angles: torch.Tensor) -> torch.Tensor:
+    """`joint_limit_excess` of the (B, R, 3) `joint_angles`."""
+    a = _anatomy_like(angles)
     swing = torch.sqrt((angles[..., :2] ** 2).sum(-1) + 1e-12)  # (B, R)
     widen = a.twist_widening * torch.relu(swing - math.pi / 2)  # (B, R)
     low = a.low.expand_as(angles).clone()
@@ -554,19 +558,21 @@ def second_bone_swing(body_pose: torch.Tensor) -> torch.Tensor:
     return swing_twist_angles(in_frame(q, a.second_frames))[..., :2]
 
 
-def joint_limit_penalty(body_pose: torch.Tensor, joints: tuple[str, ...] | None = None,
-                        excess: torch.Tensor | None = None) -> torch.Tensor:
+def joint_limit_penalty(body_pose: torch.Tensor | None, joints: tuple[str, ...] | None = None,
+                        excess: torch.Tensor | None = None, swing: torch.Tensor | None = None) -> torch.Tensor:
     """(B, 65, 3) anny body_pose -> (B,) sum of squared hinges (radians) beyond the anatomical ranges.
 
     Zero inside every range. Includes the swing of thigh/shin/arm/forearm second bones
     beyond SECOND_BONE_SWING. `joints` restricts it to some BODY_JOINTS names (e.g. ('knee',)).
-    `excess`: `joint_limit_excess(body_pose)` when the caller has it (E_L and E_bend share it)."""
+    `excess`, `swing`: `joint_limit_excess(body_pose)` and `second_bone_swing(body_pose)` when the
+    caller has them (`pose_priors`); `body_pose` is then not read."""
     if excess is None:
         excess = joint_limit_excess(body_pose)
     if joints is not None:
-        rows = device_constant(_limit_rows(tuple(joints)), body_pose.device, torch.long)
+        rows = device_constant(_limit_rows(tuple(joints)), excess.device, torch.long)
         return (excess.index_select(1, rows) ** 2).sum((1, 2))
-    swing = second_bone_swing(body_pose)
+    if swing is None:
+        swing = second_bone_swing(body_pose)
     second = torch.relu(swing.abs() - math.radians(SECOND_BONE_SWING)) ** 2
     return (excess**2).sum((1, 2)) + second.sum((1, 2))
 
@@ -635,8 +641,12 @@ def hand_pose_prior(hand_pose: torch.Tensor, side: str, coupling_weight: float =
     plus `coupling_weight` * (DIP - 2/3 PIP)^2 for the four fingers (tendons couple them).
 
     Anatomy only: no open finger-motion data could be found to learn from."""
-    a = _anatomy_like(hand_pose)
-    angles = hand_angles(hand_pose, side)
+    return hand_prior_of_angles(hand_angles(hand_pose, side), coupling_weight)
+
+
+def hand_prior_of_angles(angles: torch.Tensor, coupling_weight: float = HAND_COUPLING_WEIGHT) -> torch.Tensor:
+    """`hand_pose_prior` of the (B, 19, 3) `hand_angles`."""
+    a = _anatomy_like(angles)
     penalty = squared_hinge(angles, a.hand_low, a.hand_high).sum((1, 2))
     coupling = angles[:, a.dip, 0] - DIP_PIP_RATIO * angles[:, a.pip, 0]
     return penalty + coupling_weight * (coupling**2).sum(1)
@@ -754,12 +764,82 @@ def learned_pose_prior(body_pose: torch.Tensor) -> torch.Tensor:
     """(B, 65, 3) -> (B,) negative log-likelihood under the shipped mixture, min over components
     (SMPLify's MaxMixture): min_k 0.5 |L_k^T (x - mu_k)|^2 + c_k, with c_k >= 0 and 0 for the
     densest component, so the most likely pose scores about 0."""
-    prior = load_pose_prior(body_pose.device if body_pose.device.type != "cpu" else None, body_pose.dtype)
-    x = learned_features(body_pose)  # (B, D)
+    return mixture_nll(learned_features(body_pose))
+
+
+def mixture_nll(x: torch.Tensor) -> torch.Tensor:
+    """`learned_pose_prior` of the (B, D) `learned_features`."""
+    prior = load_pose_prior(x.device if x.device.type != "cpu" else None, x.dtype)
     diff = x[:, None, :] - prior.means[None]  # (B, K, D)
     z = torch.einsum("kde,bkd->bke", prior.precision_chol, diff)  # L^T (x - mu)
     nll = 0.5 * (z * z).sum(-1) + prior.constants  # (B, K)
     return nll.min(1).values
+
+
+# ---------------------------------------------------------------------------
+# Every pose prior in one pass
+# ---------------------------------------------------------------------------
+
+POSE_PRIOR_TERMS = ("pose_prior", "joint_limits", "bending", "hand_prior")
+
+
+@lru_cache(maxsize=8)
+def _prior_rows(device, dtype) -> dict:
+    """`pose_priors`' table: every rotation the priors read, as rows composing quaternions of
+    [body (n) | mirrored body (n) | left hand (H) | mirrored right hand (H) | identity]: the joint
+    rows, the second bones, both hands' bones and the learned groups, with their frames."""
+    a = load_anatomy(device, dtype)
+    learned = _learned_table(device, dtype)
+    n, H = len(ANNY_BODY_BONES), a.hand_frames.shape[0]
+    identity = 2 * n + 2 * H
+
+    def body_rows(bones, mirror):  # right-side rows read the mirrored half; pads compose the identity
+        return torch.where(bones >= 0, bones + (mirror[:, 1:2] < 0).long() * n, identity)
+
+    hands = torch.arange(2 * n, 2 * n + 2 * H, device=device)[:, None]
+    blocks = [body_rows(a.bones, a.mirror), body_rows(a.second_bones[:, None], a.second_mirror), hands,
+              body_rows(learned["bones"], learned["mirror"])]
+    width = max(b.shape[1] for b in blocks)
+    index = torch.cat([torch.nn.functional.pad(b, (0, width - b.shape[1]), value=identity) for b in blocks])
+    sizes = [len(b) for b in blocks]
+    return {"index": index, "sizes": sizes,
+            "frames": torch.cat([a.frames, a.second_frames, a.hand_frames, a.hand_frames, learned["frames"]])}
+
+
+def pose_priors(body_pose: torch.Tensor, left_hand_pose: torch.Tensor, right_hand_pose: torch.Tensor,
+                terms) -> dict[str, torch.Tensor]:
+    """The pose priors among `terms` (POSE_PRIOR_TERMS: `learned_pose_prior`, `joint_limit_penalty`,
+    `extreme_bending`, `hands_pose_prior`), each (B,), from one pass over every rotation they read:
+    one quaternion conversion, one composition, one change of frame and one swing-twist split for
+    all of them. Apart, each ran its own chain of small operations (about 2,000 kernels per frame
+    of a GPU's body fit, forward and backward); the values are theirs (tested)."""
+    rows = _prior_rows(body_pose.device, body_pose.dtype)
+    R, Ns, H2, _ = rows["sizes"]
+    mirror = _constant_like(MIRROR, body_pose)
+    rotations = torch.cat([body_pose, body_pose * mirror, left_hand_pose, right_hand_pose * mirror], 1)
+    B = len(body_pose)
+    table = torch.cat([roma.rotvec_to_unitquat(rotations),
+                       _constant_like((0.0, 0.0, 0.0, 1.0), body_pose).expand(B, 1, 4)], 1)
+    index = rows["index"]
+    q = table[:, index[:, 0]]
+    for k in range(1, index.shape[1]):
+        q = quat_product(q, table[:, index[:, k]])
+    q = in_frame(q, rows["frames"])
+    a = _anatomy_like(body_pose)
+    angles = swing_twist_angles(q[:, :R + Ns + H2])
+    result = {}
+    if "pose_prior" in terms:
+        features = roma.unitquat_to_rotvec(q[:, R + Ns + H2:]).flatten(1)
+        result["pose_prior"] = mixture_nll(features[:, _learned_table(body_pose.device, body_pose.dtype)["keep"]])
+    excess = excess_of_angles(angles[:, :R] * a.signs) if {"joint_limits", "bending"} & set(terms) else None
+    if "joint_limits" in terms:
+        result["joint_limits"] = joint_limit_penalty(None, excess=excess, swing=angles[:, R:R + Ns, :2])
+    if "bending" in terms:
+        result["bending"] = extreme_bending(None, excess)
+    if "hand_prior" in terms:
+        hands = angles[:, R + Ns:].reshape(2 * B, H2 // 2, 3) * a.hand_signs
+        result["hand_prior"] = hand_prior_of_angles(hands).view(B, 2).sum(1)
+    return result
 
 
 # ---------------------------------------------------------------------------

@@ -679,15 +679,8 @@ class BodyFitter:
             one_view = keypoint_views(obs.keypoints, self.cfg) < 2
             depth = losses.depth_point_to_plane(out.vertices[:, :len(self.subset)], matches, self.cfg.depth_scale_m)
             result["depth"] = depth * torch.where(one_view, self.cfg.one_view_depth_factor, 1.0)
-        if "pose_prior" in terms:
-            result["pose_prior"] = priors.learned_pose_prior(params.body_pose)
-        excess = priors.joint_limit_excess(params.body_pose) if {"joint_limits", "bending"} & set(terms) else None
-        if "joint_limits" in terms:
-            result["joint_limits"] = priors.joint_limit_penalty(params.body_pose, excess=excess)
-        if "bending" in terms:
-            result["bending"] = priors.extreme_bending(params.body_pose, excess)
-        if "hand_prior" in terms:
-            result["hand_prior"] = priors.hands_pose_prior(params.left_hand_pose, params.right_hand_pose)
+        if set(priors.POSE_PRIOR_TERMS) & set(terms):
+            result.update(priors.pose_priors(params.body_pose, params.left_hand_pose, params.right_hand_pose, terms))
         if "shape" in terms:
             result["shape"] = priors.shape_prior(params.shape, center=self.shape_center)
         if "expression" in terms and self.cfg.fit_expression:

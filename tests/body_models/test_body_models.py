@@ -144,6 +144,38 @@ def test_phenotype_interpolation_is_annys_on_the_anchors_device(anny_model):
             assert torch.equal(*(torch.autograd.grad((w * weight).sum(), value)[0] for w in (ours, annys)))
 
 
+def test_phenotype_weights_are_annys_bit_for_bit(anny_model):
+    """anny's phenotype blend weights made for every phenotype at once (`phenotype_weights`):
+    anny's values and gradients bit for bit, for the model's labels and for all of anny's, inside,
+    on and outside the anchors, clamped or extrapolated, in float32 and float64."""
+    from anny.models.model_data import PHENOTYPE_LABELS
+    from anny.models.phenotype import make_phenotype_anchors
+
+    from intercap.body_models.anny_backend import ANNY_PHENOTYPE_WEIGHTS, phenotype_weights
+
+    assert len(ANNY_PHENOTYPE_WEIGHTS) == 1
+    core = anny_model.core
+    g = torch.Generator().manual_seed(1)
+    for dtype in (torch.float32, torch.float64):
+        anchors = make_phenotype_anchors(dtype)
+        mask = core.stacked_phenotype_blend_shapes_mask.to(dtype)
+        for labels in (list(core.phenotype_labels), list(PHENOTYPE_LABELS)):
+            on_anchors = torch.tensor([0.0, 0.5, 1.0, 1 / 3, 2 / 3, -1 / 3], dtype=dtype)
+            values = torch.cat([torch.rand(30, len(labels), generator=g, dtype=dtype) * 1.6 - 0.3,
+                                on_anchors[torch.randint(0, 6, (12, len(labels)), generator=g)]])
+            for extrapolate in (False, True):
+                ours_in, annys_in = values.clone().requires_grad_(True), values.clone().requires_grad_(True)
+                ours = phenotype_weights(ours_in, labels, anchors, mask, extrapolate)
+                annys = ANNY_PHENOTYPE_WEIGHTS[0](annys_in, labels, anchors, mask, extrapolate)
+                assert ours.shape == annys.shape == (42, mask.shape[0])
+                assert torch.equal(ours, annys)
+                weight = torch.randn(ours.shape, generator=g, dtype=dtype)
+                (ours * weight).sum().backward()
+                (annys * weight).sum().backward()
+                assert annys_in.grad.nan_to_num().abs().sum() > 0
+                torch.testing.assert_close(ours_in.grad, annys_in.grad, rtol=0, atol=0, equal_nan=True)  # all races 0: NaN in both
+
+
 def test_axis_angle_to_matrix_is_rodrigues_everywhere():
     """`axis_angle_to_matrix` (Rodrigues' formula in few kernels) gives roma's matrices in float64 at
     every angle from 1e-3 to near pi, rotations (orthonormal, determinant 1), the generators as its

@@ -206,6 +206,30 @@ def test_both_hands_in_one_batch_score_as_each_hand_alone():
         assert torch.allclose(got, want, rtol=1e-4, atol=1e-6)
 
 
+def test_pose_priors_in_one_pass_are_each_prior_apart():
+    """`pose_priors` (every pose prior from one pass over the rotations) gives each prior's value
+    and gradients to rounding (vectorised math rounds by the position in a tensor), only the terms
+    asked for, in float32 and float64."""
+    g = torch.Generator().manual_seed(5)
+    for dtype in (torch.float32, torch.float64):
+        body, left, right = ((torch.randn(6, n, 3, generator=g, dtype=dtype) * 0.6).requires_grad_(True)
+                             for n in (65, 19, 19))
+        apart = {"pose_prior": priors.learned_pose_prior(body), "joint_limits": priors.joint_limit_penalty(body),
+                 "bending": priors.extreme_bending(body), "hand_prior": priors.hands_pose_prior(left, right)}
+        assert all(float(v.min()) > 0 for v in apart.values())  # random poses break limits: no zeros compared
+        together = priors.pose_priors(body, left, right, priors.POSE_PRIOR_TERMS)
+        assert list(together) == list(apart)
+        for term, value in apart.items():
+            torch.testing.assert_close(together[term], value, rtol=1e-6, atol=0)
+            want = torch.autograd.grad(value.sum(), (body, left, right), allow_unused=True, retain_graph=True)
+            got = torch.autograd.grad(together[term].sum(), (body, left, right), allow_unused=True, retain_graph=True)
+            for a, b in zip(got, want):
+                assert (a is None) == (b is None) or float((a if b is None else b).abs().max()) == 0, term
+                if a is not None and b is not None:
+                    torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6 * float(b.abs().max()))
+        assert list(priors.pose_priors(body, left, right, ("bending", "keypoints"))) == ["bending"]
+
+
 def test_dip_following_pip_is_cheaper_than_dip_without_pip():
     follows = priors.hand_pose_from_angles(finger_angles(30, 60, 40), "L")
     alone = priors.hand_pose_from_angles(finger_angles(30, 0, 40), "L")

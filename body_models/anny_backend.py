@@ -280,15 +280,18 @@ class AnnyBody(BodyModel):
         self.register_buffer("homogeneous_eye", torch.eye(4, dtype=dtype))
         parent = core.kinematic_chain_indices[3].clone()  # the root: itself
         self.register_buffer("bone_parent", parent)
-        U = core.reference_bone_orientations
-        self.register_buffer("parent_orientations_t", U[parent].mT.contiguous())  # U_p^T
-        ancestors, J = [], len(parent)
-        step = torch.cat([parent.clone(), torch.tensor([J])])
-        step[0] = J  # above the root: the sentinel
-        while bool((step[:J] < J).any()):  # 2^k-th ancestors until every bone's lies above the root
+        self.register_buffer("chain_sources", torch.cat([sources, torch.tensor([len(posed) + 1])]))  # + global_orient
+        # `bone_transforms`' chain: the bones (J), the world placement above the root (J), the identity (J + 1)
+        J, U, eye = len(parent), core.reference_bone_orientations, torch.eye(3, dtype=dtype)[None]
+        self.register_buffer("link_left", torch.cat([U[parent].mT, eye]).contiguous())  # U_p^T, then I
+        self.register_buffer("link_right", torch.cat([U, eye]).contiguous())  # U_c, then I
+        step = torch.cat([parent, torch.tensor([J + 1, J + 1])])
+        step[0] = J
+        ancestors = []
+        while bool((step[:J + 1] <= J).any()):  # 2^k-th ancestors until each lies above the placement
             ancestors.append(step)
             step = step[step]
-        self.register_buffer("bone_ancestors", torch.stack(ancestors))  # (S, J + 1)
+        self.register_buffer("bone_ancestors", torch.stack(ancestors))  # (S, J + 2)
         self.register_buffer("faces", core.get_triangular_faces().long())
 
         coco = anny.KeypointsRegressor.coco(core)
@@ -439,14 +442,17 @@ class AnnyBody(BodyModel):
             raise KeyError(f"unknown anny bone {joint!r}")
         return "body", self.body_joint_names.index(joint)
 
-    def bone_rotations(self, params: BodyParams) -> torch.Tensor:
-        """(B, 104, 3, 3) local rotations for every bone; the root stays identity. Body and hands
-        in one Rodrigues pass (each on its own, with the copies into place, cost ~150 kernels an
+    def bone_rotations(self, params: BodyParams, with_global: bool = False) -> torch.Tensor:
+        """(B, 104, 3, 3) local rotations for every bone; the root stays identity (`with_global`:
+        (B, 105, 3, 3), the global orientation last). Body, hands (and global orientation) in one
+        Rodrigues pass (each on its own, with the copies into place, cost ~200 kernels an
         evaluation, forward and backward); a zero rotation vector gives the identity exactly."""
         pose = params.body_pose
-        rotvecs = torch.cat([pose.new_zeros(pose.shape[0], 1, 3), pose, params.left_hand_pose,
-                             params.right_hand_pose], 1)
-        return axis_angle_to_matrix(rotvecs.index_select(1, self.pose_sources))
+        parts = [pose.new_zeros(pose.shape[0], 1, 3), pose, params.left_hand_pose, params.right_hand_pose]
+        if with_global:
+            parts.append(params.global_orient[:, None])
+        sources = self.chain_sources if with_global else self.pose_sources
+        return axis_angle_to_matrix(torch.cat(parts, 1).index_select(1, sources))
 
     def _pose_matrices(self, params: BodyParams) -> torch.Tensor:
         """(B, 104, 4, 4) homogeneous `bone_rotations`."""
@@ -496,7 +502,7 @@ class AnnyBody(BodyModel):
         parent = self.bone_parent
         A = self.core.reference_bone_orientations @ R.mT
         A = torch.cat([torch.eye(3, dtype=A.dtype, device=A.device).expand_as(A[:, :1]), A[:, 1:]], 1)
-        link = self.parent_orientations_t @ A[:, parent] @ (h - h[:, parent])[..., None]  # (B, J, 3, 1)
+        link = self.link_left[:-1] @ A[:, parent] @ (h - h[:, parent])[..., None]  # (B, J, 3, 1)
         return torch.nn.functional.pad(link, (3, 0, 0, 1)) + self.homogeneous_corner
 
     def _vertex_tables(self, vertex_ids: torch.Tensor) -> tuple[torch.Tensor, ...]:
@@ -535,7 +541,7 @@ class AnnyBody(BodyModel):
             return super().sparse_forward(params, vertex_ids)
         if rest is None:
             rest = self.rest_state(params, vertex_ids)
-        transforms, bone_poses = self.bone_transforms(params, rest)  # (B, J, 4, 4)
+        transforms, bone_poses = self.bone_transforms(params, rest)  # (B, J, 4, 4), in the world
         vertices = skin_vertices(rest.skin, transforms[..., :3, :], rest.vertices)  # (B, n, 3)
         used = transforms[:, self.coco_bones]
         coco = (torch.einsum("bjde,bkje->bkd", used[..., :3, :3], rest.folded_regressor)
@@ -543,23 +549,28 @@ class AnnyBody(BodyModel):
         joints = bone_poses[..., :3, 3]
         n = len(rest.vertex_ids)
         keypoints = self._openpose_keypoints(coco, joints, vertices[:, n:])
-        return self.world_output(vertices[:, :n], joints, keypoints, params)
+        return BodyOutput(vertices=vertices[:, :n], joints=joints, keypoints=keypoints)
 
     def bone_transforms(self, params: BodyParams, rest: "AnnyRest") -> tuple[torch.Tensor, torch.Tensor]:
-        """anny's forward kinematics ('local-ref', `get_bone_transforms`): (B, J, 4, 4) skinning
-        transforms T_c and posed bone frames W_c, W_c = W_p K_c with K_c = [U_p^T D_c U_c | U_p^T q_c]
-        (D_c the pose's rotation; the root its own parent, q_root = 0, which makes K_root = W_root).
+        """anny's forward kinematics ('local-ref', `get_bone_transforms`) placed in the world:
+        (B, J, 4, 4) skinning transforms T_c and posed bone frames W_c, W_c = W_p K_c with
+        K_c = [U_p^T D_c U_c | U_p^T q_c] (D_c the pose's rotation; the root its own parent,
+        q_root = 0, which makes K_root anny's W_root), above the root the world placement
+        [global orientation | translation].
 
         The chain by pointer doubling: each bone's product with its 2^k-th ancestor's, five
-        batched products for anny's 17 levels (anny takes one per level: about 50 kernels
-        forward and 100 backward an evaluation against 10 and 30); the rest-dependent link
-        offsets come with the rest state (`_link_offsets`)."""
-        U = self.core.reference_bone_orientations
-        links = torch.nn.functional.pad(self.parent_orientations_t @ self.bone_rotations(params) @ U, (0, 1, 0, 1))
-        chain = torch.cat([links + rest.offsets, self.homogeneous_eye.expand(len(links), 1, 4, 4)], 1)
-        for ancestors in self.bone_ancestors:  # the sentinel row (index J) is the identity, its own ancestor
+        batched products for anny's 17 levels and the placement (anny takes one per level,
+        and the placement moved every point afterwards: about 120 kernels forward and backward an
+        evaluation against 40); the rest-dependent link offsets come with the rest state
+        (`_link_offsets`)."""
+        links = torch.nn.functional.pad(self.link_left @ self.bone_rotations(params, with_global=True)
+                                        @ self.link_right, (0, 1, 0, 1))  # (B, J + 1, 4, 4)
+        B = len(links)
+        place = torch.nn.functional.pad(params.transl[:, None, :, None], (3, 0, 0, 1)) + self.homogeneous_corner
+        chain = torch.cat([links + torch.cat([rest.offsets, place], 1), self.homogeneous_eye.expand(B, 1, 4, 4)], 1)
+        for ancestors in self.bone_ancestors:  # the last row is the identity, its own ancestor
             chain = chain.index_select(1, ancestors) @ chain
-        poses = chain[:, :-1]
+        poses = chain[:, :-2]
         rotations = poses[..., :3, :3] @ rest.bones[..., :3, :3].mT  # T_c = W_c P_c^-1
         translations = poses[..., :3, 3:] - rotations @ rest.bones[..., :3, 3:]
         return torch.cat([torch.cat([rotations, translations], -1), poses[..., 3:, :]], -2), poses

@@ -180,7 +180,7 @@ def minimise(
         evaluations += 1
         energy, grads = energy_and_gradients()
         for v, g in zip(variables, grads):
-            v.grad = g
+            v.grad = g.contiguous()  # torch's L-BFGS flattens them with `view` (a gradient may be a slice)
         return energy
 
     previous = math.inf

@@ -176,6 +176,29 @@ def test_phenotype_weights_are_annys_bit_for_bit(anny_model):
                 torch.testing.assert_close(ours_in.grad, annys_in.grad, rtol=0, atol=0, equal_nan=True)  # all races 0: NaN in both
 
 
+def test_bone_transforms_are_annys_kinematics_in_the_world(anny_model):
+    """Our forward kinematics (`bone_transforms`: pointer doubling, the world placement above the
+    root) gives anny's bone frames and skinning transforms (`get_bone_transforms`, one level at a
+    time) moved by the global orientation and translation, for random poses, shapes and placements."""
+    from intercap.body_models.base import axis_angle_to_matrix
+
+    g = torch.Generator().manual_seed(2)
+    params = anny_model.init_params(4)
+    for name in ("body_pose", "left_hand_pose", "right_hand_pose", "global_orient"):
+        setattr(params, name, torch.randn(getattr(params, name).shape, generator=g) * 0.5)
+    params.transl = torch.randn(4, 3, generator=g)
+    params.shape = torch.rand(params.shape.shape, generator=g)
+    rest = anny_model.rest_state(params, anny_model.fitting_subsample[:50])
+    transforms, poses = anny_model.bone_transforms(params, rest)
+    annys_transforms, annys_poses = anny_model.core.get_bone_transforms(anny_model._pose_matrices(params), rest.bones)
+    place = torch.eye(4).repeat(4, 1, 1)
+    place[:, :3, :3] = axis_angle_to_matrix(params.global_orient)
+    place[:, :3, 3] = params.transl
+    assert len(anny_model.bone_ancestors) == 5  # 17 levels and the placement: 2^5 >= 18
+    torch.testing.assert_close(poses, place[:, None] @ annys_poses, rtol=0, atol=2e-6)
+    torch.testing.assert_close(transforms, place[:, None] @ annys_transforms, rtol=0, atol=2e-6)
+
+
 def test_axis_angle_to_matrix_is_rodrigues_everywhere():
     """`axis_angle_to_matrix` (Rodrigues' formula in few kernels) gives roma's matrices in float64 at
     every angle from 1e-3 to near pi, rotations (orthonormal, determinant 1), the generators as its

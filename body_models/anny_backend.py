@@ -70,6 +70,7 @@ def interpolation_weights(value: torch.Tensor, anchors: torch.Tensor, extrapolat
 
 
 ANNY_PHENOTYPE_WEIGHTS: list = []  # anny's own `phenotype_blendshape_weights`, once replaced (the tests compare)
+_PHENOTYPE_TABLES: dict = {}  # id(anchors) -> (anchors, {(labels, device, dtype): PhenotypeTable})
 
 
 @dataclass(frozen=True)
@@ -111,9 +112,10 @@ def phenotype_weights(phenotype_parameters: torch.Tensor, phenotype_labels: list
                       stacked_phenotype_blend_shapes_mask: torch.Tensor, extrapolate: bool) -> torch.Tensor:
     """anny's `phenotype_blendshape_weights` ((B, labels) phenotypes -> (B, K) blend shape
     coefficients), every interpolated phenotype at once: anny interpolates them one after another
-    and picks each variation apart, about 300 kernels forward and backward on every evaluation
-    while the shape is fitted; this is about 40. The same floating-point operations on the same
-    numbers, so values and gradients are anny's, bit for bit (tested)."""
+    and picks each variation apart (counted on the sample: 4.2 times the forward kernels), in every
+    evaluation while the shape is fitted; this is 32 kernels forward and 40 backward. The same
+    floating-point operations on the same numbers, so values and gradients are anny's, bit for bit
+    (tested)."""
     labels = tuple(phenotype_labels)
     key = (labels, phenotype_parameters.device, phenotype_parameters.dtype)
     cache = _PHENOTYPE_TABLES.get(id(anchors))
@@ -139,9 +141,6 @@ def phenotype_weights(phenotype_parameters: torch.Tensor, phenotype_labels: list
     phens = torch.cat([weights.flatten(1), race], 1)[:, table.columns]
     mask = stacked_phenotype_blend_shapes_mask.unsqueeze(0)
     return torch.prod(phens.unsqueeze(1) * mask + (1 - mask), dim=-1)
-
-
-_PHENOTYPE_TABLES: dict = {}
 
 
 def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
@@ -266,10 +265,6 @@ class AnnyBody(BodyModel):
         self.expression_names = list(core.facial_action_labels)
         index = {b: i for i, b in enumerate(labels)}
         self._index = index
-        self.register_buffer("body_bone_ids", torch.tensor([index[b] for b in self.body_joint_names]))
-        for side in SIDES:
-            ids = [index[f"{h}.{side}"] for h in self.hand_joint_names]
-            self.register_buffer(f"hand_bone_ids_{side}", torch.tensor(ids))
         posed = [*self.body_joint_names, *(f"{h}.{side}" for side in SIDES for h in self.hand_joint_names)]
         sources = torch.zeros(len(labels), dtype=torch.long)  # 0: a zero rotation vector (the root)
         sources[[index[b] for b in posed]] = torch.arange(1, len(posed) + 1)
@@ -445,8 +440,8 @@ class AnnyBody(BodyModel):
     def bone_rotations(self, params: BodyParams, with_global: bool = False) -> torch.Tensor:
         """(B, 104, 3, 3) local rotations for every bone; the root stays identity (`with_global`:
         (B, 105, 3, 3), the global orientation last). Body, hands (and global orientation) in one
-        Rodrigues pass (each on its own, with the copies into place, cost ~200 kernels an
-        evaluation, forward and backward); a zero rotation vector gives the identity exactly."""
+        Rodrigues pass, not three with copies into place; a zero rotation vector gives the
+        identity exactly."""
         pose = params.body_pose
         parts = [pose.new_zeros(pose.shape[0], 1, 3), pose, params.left_hand_pose, params.right_hand_pose]
         if with_global:
@@ -559,10 +554,9 @@ class AnnyBody(BodyModel):
         [global orientation | translation].
 
         The chain by pointer doubling: each bone's product with its 2^k-th ancestor's, five
-        batched products for anny's 17 levels and the placement (anny takes one per level,
-        and the placement moved every point afterwards: about 120 kernels forward and backward an
-        evaluation against 40); the rest-dependent link offsets come with the rest state
-        (`_link_offsets`)."""
+        batched products for anny's 17 levels and the placement (anny takes one per level, and
+        the placement then moved every point apart); the rest-dependent link offsets come with
+        the rest state (`_link_offsets`)."""
         links = torch.nn.functional.pad(self.link_left @ self.bone_rotations(params, with_global=True)
                                         @ self.link_right, (0, 1, 0, 1))  # (B, J + 1, 4, 4)
         B = len(links)

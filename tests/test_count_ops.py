@@ -30,6 +30,22 @@ def test_kernels_count_at_the_intercap_function_issuing_them():
     assert count.sites["geometry.cameras:_radial_factor"] >= 10  # its rational polynomial, op by op
 
 
+def test_lines_name_the_line_in_the_body_model_or_library_issuing():
+    """`--lines`: a kernel issued inside roma (or anny, or our body models) counts at that line,
+    not at its intercap caller; intercap's own sites get their line too."""
+    import roma
+
+    from intercap.geometry.cameras import distort
+
+    with OperationCount(lines=True) as count:
+        roma.rotvec_to_unitquat(torch.randn(4, 3))
+        distort(torch.rand(2, 5, 2), torch.rand(2, 8) * 0.1)
+    sites = set(count.sites)
+    assert any(s.startswith("roma:mappings:rotvec_to_unitquat:") for s in sites), sites
+    assert any(s.startswith("intercap:geometry.cameras:_radial_factor:") for s in sites), sites
+    assert all(s.rsplit(":", 1)[1].isdigit() for s in sites - {"-"}), sites  # "-": issued by this test
+
+
 def test_replayed_evaluations_count_apart():
     """Kernels run while `replaying` (a GPU's CUDA-graph replay) count in `in_graphs`, not as
     launched kernels, so `--graphs` predicts the launches a GPU makes."""

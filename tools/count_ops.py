@@ -18,7 +18,7 @@ operation inside a library, e.g. the body model, counts at its intercap
 caller). Counting slows the run several times: its timings mean nothing.
 
     python -m tools.count_ops --session data_samples/sample [--stages object,body,global] [--alone]
-                              [--out DIR] [--sites 15] [--set SECTION.KEY=VALUE ...]
+                              [--out DIR] [--sites 15] [--graphs] [--lines] [--set SECTION.KEY=VALUE ...]
 
 `--alone` runs only the counted stages (for one that needs no earlier stage's results: object).
 `--graphs` counts what the fits record on a GPU (`optim.recorded`: the body's, the global stage's
@@ -26,6 +26,9 @@ and the object's evaluations, the L-BFGS's direction, verdict and step) after ea
 apart, as the CUDA-graph replays a GPU runs them as: one launch each; the stages run as they do
 where graphs are recorded (`optim.records_graphs`: the object renders in fixed shapes, the depth
 pairs keep theirs).
+
+`--lines` names each site down to its line, and looks into our body models, anny and roma too
+(stop 35 found anny's phenotype weights and kinematics so).
 
 `--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=300 --set
 object.side_by_side=8 --set body.line_search=armijo --set global.line_search=armijo` runs the GPU's
@@ -60,8 +63,9 @@ class OperationCount(TorchDispatchMode):
     (`in_graphs`, and one launch per replay in `replays`); those by issuing function too, or for the
     backward passes by autograd node (`graph_sites`): what a fused evaluation would have to cut."""
 
-    def __init__(self):
+    def __init__(self, lines: bool = False):
         super().__init__()
+        self.lines = lines
         self.all = self.kernels = self.backward = self.in_graphs = self.replays = self.waits = 0
         self.replaying = False
         self.sites = collections.Counter()
@@ -73,37 +77,48 @@ class OperationCount(TorchDispatchMode):
         name = func.overloadpacket.__name__
         if name in HOST_WAITS:
             self.waits += 1
-            self.wait_sites[issuing_function(sys._getframe(1))] += 1
+            self.wait_sites[issuing_function(sys._getframe(1), self.lines)] += 1
         if name in VIEW_OPS:
             pass
         elif self.replaying:
             self.in_graphs += 1
             node = torch._C._current_autograd_node()
             self.graph_sites[f"backward {node.name()}" if node is not None
-                             else issuing_function(sys._getframe(1))] += 1
+                             else issuing_function(sys._getframe(1), self.lines)] += 1
         else:
             self.kernels += 1
             if torch._C._current_autograd_node() is not None:
                 self.backward += 1
             else:
-                self.sites[issuing_function(sys._getframe(1))] += 1
+                self.sites[issuing_function(sys._getframe(1), self.lines)] += 1
         return func(*args, **(kwargs or {}))
 
 
-def issuing_function(frame) -> str:
-    """module:function of the innermost intercap frame on the stack ("-" when none)."""
+LINE_PACKAGES = ("body_models", "anny", "roma")  # `--lines` looks into these too, not only intercap
+
+
+def issuing_function(frame, lines: bool = False) -> str:
+    """module:function of the innermost intercap frame on the stack ("-" when none). `lines`: the
+    innermost frame of intercap, our body models, anny or roma, as package:module:function:line
+    (which line of the body model's forward, or of a library, issues the most)."""
     while frame is not None:
         path = frame.f_code.co_filename.replace("\\", "/")
         if "/intercap/" in path and "site-packages" not in path:
-            return f"{path.rsplit('/intercap/', 1)[1][:-3].replace('/', '.')}:{frame.f_code.co_name}"
+            where = f"{path.rsplit('/intercap/', 1)[1][:-3].replace('/', '.')}:{frame.f_code.co_name}"
+            return f"intercap:{where}:{frame.f_lineno}" if lines else where
+        if lines:
+            package = next((p for p in LINE_PACKAGES if f"/{p}/" in path), None)
+            if package is not None:
+                module = path.rsplit(f"/{package}/", 1)[1][:-3].replace("/", ".")
+                return f"{package}:{module}:{frame.f_code.co_name}:{frame.f_lineno}"
         frame = frame.f_back
     return "-"
 
 
 def count_stages(session: Path, out: Path, stages: list[str], overrides: list[str],
-                 alone: bool = False, graphs: bool = False) -> tuple[dict, int]:
-    """Run the pipeline (or, `alone`, only `stages`) on `session` into `out`, counting inside `stages`:
-    ({stage: OperationCount}, frames)."""
+                 alone: bool = False, graphs: bool = False, lines: bool = False) -> tuple[dict, int]:
+    """Run the pipeline (or, `alone`, only `stages`) on `session` into `out`, counting inside `stages`
+    (`lines`: sites by line, `issuing_function`): ({stage: OperationCount}, frames)."""
     from intercap import pipeline
     from intercap.config import load_config
     from intercap.session import Session
@@ -116,7 +131,7 @@ def count_stages(session: Path, out: Path, stages: list[str], overrides: list[st
 
     def counted(name, run):
         def run_counting(session, cfg, out_dir, progress):
-            counts[name] = running["stage"] = OperationCount()
+            counts[name] = running["stage"] = OperationCount(lines)
             try:
                 with counts[name]:
                     return run(session, cfg, out_dir, progress)
@@ -171,6 +186,8 @@ def main(argv=None) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", help="config override")
     parser.add_argument("--graphs", action="store_true",
                         help="count the fits' evaluations after each fit's first as CUDA-graph replays")
+    parser.add_argument("--lines", action="store_true",
+                        help="sites by line, looking into the body models, anny and roma too")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     from intercap.pipeline import STAGES
@@ -180,7 +197,8 @@ def main(argv=None) -> None:
     if unknown:
         parser.error(f"unknown stage(s) {', '.join(unknown)}; available: {', '.join(STAGES)}")
     with tempfile.TemporaryDirectory(prefix="count_ops_") as scratch:
-        counts, T = count_stages(args.session, args.out or Path(scratch), stages, args.set, args.alone, args.graphs)
+        counts, T = count_stages(args.session, args.out or Path(scratch), stages, args.set, args.alone, args.graphs,
+                                 args.lines)
 
     print(f"\noperations per frame on {args.session} ({T} frames; {' '.join(args.set) or 'default settings'})")
     print(f"{'stage':8s} {'all':>9s} {'kernels':>9s} {'backward':>9s} {'in graphs':>10s} {'replays':>8s} "

@@ -179,13 +179,19 @@ def _radial_factor(r2: torch.Tensor, dist: torch.Tensor,
 
 
 def distort(xy: torch.Tensor, dist: torch.Tensor) -> torch.Tensor:
-    """OpenCV rational distortion of normalised coordinates: (C, N, 2), dist (C, 8) -> (C, N, 2)."""
+    """OpenCV rational distortion of normalised coordinates: (C, N, 2), dist (C, 8) -> (C, N, 2).
+
+    Coordinate by coordinate (`unbind`), x^2, y^2 and 2 x y made once: 85 kernels forward and
+    backward where picking each coordinate apart took 99. On (C, N, 2) tensors whole it takes 67, but
+    the CPU runs their size-2 innermost axis at half the speed (every body and object evaluation
+    projects)."""
     p1, p2 = dist[:, 2, None], dist[:, 3, None]  # each (C, 1)
-    x, y = xy[..., 0], xy[..., 1]  # (C, N)
-    r2 = x * x + y * y
+    x, y = xy.unbind(-1)  # (C, N)
+    xx, yy, xy2 = x * x, y * y, 2 * x * y
+    r2 = xx + yy
     radial, _ = _radial_factor(r2, dist, derivative=False)
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    xd = x * radial + p1 * xy2 + p2 * (r2 + 2 * xx)
+    yd = y * radial + p1 * (r2 + 2 * yy) + p2 * xy2
     return torch.stack([xd, yd], dim=-1)
 
 
@@ -243,7 +249,7 @@ def undistort(xy_distorted: torch.Tensor, dist: torch.Tensor, iterations: int = 
 
 def _apply_intrinsics(xy: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """Normalised (C, N, 2) -> pixels (C, N, 2) with K (C, 3, 3) (skew kept)."""
-    x, y = xy[..., 0], xy[..., 1]
+    x, y = xy.unbind(-1)
     u = K[:, 0, 0, None] * x + K[:, 0, 1, None] * y + K[:, 0, 2, None]
     v = K[:, 1, 1, None] * y + K[:, 1, 2, None]
     return torch.stack([u, v], dim=-1)

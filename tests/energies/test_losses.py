@@ -130,3 +130,28 @@ def test_dense_nearest_search_finds_what_the_trees_find():
         assert (trees == dense).all()
         assert (dense[1, 2] == -1).all() and (dense[~query_mask] == -1).all()
     assert ((trees >= 0).sum() > 0) and ((trees == -1) & query_mask).sum() > 0  # the bound bites, not everywhere
+
+
+def test_rotation_6d_to_matrix_is_romas_gram_schmidt_with_its_gradients():
+    """The written-out backward (`losses._GramSchmidt`) gives roma's matrices and the
+    gradients of autograd's chain; the input may be moved in place before the backward pass, as
+    the object fits move their poses (the backward reads only what the forward made)."""
+    import roma
+
+    from intercap.energies.losses import rotation_6d_to_matrix
+
+    g = torch.Generator().manual_seed(3)
+    r6 = torch.randn(4, 2, 6, generator=g, dtype=torch.float64)
+    weights = torch.randn(4, 2, 3, 3, generator=g, dtype=torch.float64)
+    ours, theirs = r6.clone().requires_grad_(True), r6.clone().requires_grad_(True)
+    R = rotation_6d_to_matrix(ours)
+    R_roma = roma.special_gramschmidt(torch.stack([theirs[..., :3], theirs[..., 3:]], -1))
+    assert torch.allclose(R, R_roma, rtol=0, atol=1e-15)  # the same steps (rounding may differ by layout)
+    assert torch.allclose(R @ R.transpose(-1, -2), torch.eye(3, dtype=torch.float64).expand(4, 2, 3, 3), atol=1e-12)
+    assert torch.allclose(torch.linalg.det(R), torch.ones(4, 2, dtype=torch.float64))
+    with torch.no_grad():
+        ours[0] += 1.0  # moved in place after the forward pass
+    (R * weights).sum().backward()
+    (R_roma * weights).sum().backward()
+    assert torch.allclose(ours.grad, theirs.grad, atol=1e-12)
+    assert torch.autograd.gradcheck(rotation_6d_to_matrix, (r6[0].clone().requires_grad_(True),))

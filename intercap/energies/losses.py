@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from torch.autograd.function import once_differentiable
 
 from intercap.energies import optim
 
@@ -72,6 +73,7 @@ class _GramSchmidt(torch.autograd.Function):
         return torch.stack([x, y, torch.linalg.cross(x, y)], -1)
 
     @staticmethod
+    @once_differentiable  # no second derivatives: a double backward raises instead of going wrong silently
     def backward(ctx, grad: torch.Tensor) -> torch.Tensor:
         x, y, a_norm, y_norm, x_b = ctx.saved_tensors
         gx, gy, gz = grad.unbind(-1)

@@ -22,8 +22,12 @@ from typing import Callable
 from intercap import parallel
 from intercap.config import Config, ConfigError, for_frame_rate, save_config
 from intercap.io.files import read_json, write_json
+from intercap.session import frame_cache
 
 log = logging.getLogger(__name__)
+
+# The stages that read every frame's depth and masks: the first of them to run decodes them once.
+READS_FRAMES = ("object", "body", "contact", "global")
 
 # The order of DESIGN.md. Stages not yet built are listed so errors can say so.
 ORDER = ["prepare", "detect", "object", "body", "contact", "global", "physics", "export"]
@@ -152,6 +156,8 @@ def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: 
         elif started.exists():
             log.info("%s: resuming the unfinished run", name)
         write_json(started, {"stage": name, "fingerprint": fingerprint})
+        if name in READS_FRAMES and cfg.run.frame_cache and session.frame_cache is None:
+            frame_cache.build(session, out_dir, progress)
         log.info("%s: running", name)
         start = time.perf_counter()
         figures = stage.run(session, cfg, out_dir, progress)
@@ -215,4 +221,5 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
             write_report(out_dir, session=session, cfg=cfg, progress=progress)
         except Exception as exc:  # noqa: BLE001
             log.warning("report not written (%s: %s); retry with `intercap report %s`", type(exc).__name__, exc, out_dir)
+    frame_cache.remove(out_dir)  # kept only for the resume of a run that died
     return metrics

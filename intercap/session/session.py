@@ -94,6 +94,7 @@ class Session:
         self._bad: set[Path] = set()  # files found unusable (dropped)
         self._reported: set[Problem] = set(problems)
         self._lock = threading.Lock()
+        self.frame_cache = None  # decoded depth and masks of this run (`frame_cache.attach`)
 
     # -- loading ----------------------------------------------------------------
     @classmethod
@@ -190,17 +191,29 @@ class Session:
         img = self._read_image(self._cam_index(cam), "color", frame_id, cv2.IMREAD_COLOR)
         return None if img is None else cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
 
+    def _read_cached(self, c: int, kind: str, frame_id: int, flags: int) -> np.ndarray | None:
+        """`_read_image`, from the attached frame cache where it holds the frame (masks as bool)."""
+        if self.frame_cache is not None and self._usable_path(c, kind, frame_id) is not None:
+            img = self.frame_cache.read(c, kind, frame_id)
+            if img is not None:
+                return img
+        return self._read_image(c, kind, frame_id, flags)
+
+    def read_depth_millimetres(self, cam: str | int, frame_id: int) -> np.ndarray | None:
+        """(H, W) uint16 millimetres as stored (0 = no measurement), or None for a dropped frame."""
+        return self._read_cached(self._cam_index(cam), "depth", frame_id, cv2.IMREAD_UNCHANGED)
+
     def read_depth(self, cam: str | int, frame_id: int) -> np.ndarray | None:
         """(H, W) float32 metres (0 = no measurement), or None for a dropped/unreadable frame."""
-        img = self._read_image(self._cam_index(cam), "depth", frame_id, cv2.IMREAD_UNCHANGED)
+        img = self.read_depth_millimetres(cam, frame_id)
         return None if img is None else img.astype(np.float32) / np.float32(1000.0)
 
     def read_mask(self, cam: str | int, frame_id: int, kind: str) -> np.ndarray | None:
         """(H, W) bool (pixel > 127) for kind 'person' or 'object'; None when absent/unreadable."""
         if kind not in ("person", "object"):
             raise ValueError(f"mask kind must be 'person' or 'object', got {kind!r}")
-        img = self._read_image(self._cam_index(cam), f"mask_{kind}", frame_id, cv2.IMREAD_GRAYSCALE)
-        return None if img is None else img > 127
+        img = self._read_cached(self._cam_index(cam), f"mask_{kind}", frame_id, cv2.IMREAD_GRAYSCALE)
+        return None if img is None else img if img.dtype == bool else img > 127
 
     def read_keypoints(self, cam: str | int, frame_id: int) -> np.ndarray | None:
         """(137, 3) float32 [x, y, conf] of the first person (BODY_25, left hand, right hand, face);

@@ -1085,10 +1085,9 @@ class ChunkWorkshop:
 
     @classmethod
     def open(cls, session, cfg, out_dir: Path) -> "ChunkWorkshop":
-        from intercap.session import Session
+        from intercap.session.frame_cache import open_session
 
-        if not hasattr(session, "frame_ids"):
-            session = Session.load(session)
+        session = open_session(session, out_dir)
         bcfg = cfg.body
         torch.manual_seed(bcfg.seed)
         out_dir = Path(out_dir)

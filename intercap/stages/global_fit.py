@@ -623,10 +623,9 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
     """Fit frames [chunk.lo_context, chunk.hi_context) in overlapping windows, checkpointed after
     every window (OUT/global/progress_LO_HI.npz); returns rows [chunk.lo, chunk.hi) of the body
     parameters (numpy), object rotation `R` and `centre`, the windows' `history` and `seconds`."""
-    from intercap.session import Session
+    from intercap.session.frame_cache import open_session
 
-    if not hasattr(session, "frame_ids"):
-        session = Session.load(session)
+    session = open_session(session, out_dir)
     g = cfg.global_
     out_dir = Path(out_dir)
     problem = problem or GlobalProblem(session, cfg, out_dir)

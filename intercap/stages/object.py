@@ -867,10 +867,9 @@ def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) 
     """`track_steps` over each chunk's frames [lo, hi), the chunks side by side (`run_searches`),
     in a worker (`intercap.parallel`): a chunk after the first starts without a prediction, from
     registration, as a lost object is found again. Each chunk keeps its own checkpoint."""
-    from intercap.session import Session
+    from intercap.session.frame_cache import open_session
 
-    if not hasattr(session, "frame_ids"):
-        session = Session.load(session)
+    session = open_session(session, out_dir)
     torch.manual_seed(cfg.object.seed)
     tracker = ObjectTracker(session, cfg.object, session.object.load_mesh(), device=cfg.run.device)
     searches = [track_steps(tracker, session.frame_ids[c.lo:c.hi],

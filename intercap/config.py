@@ -297,6 +297,7 @@ class RunConfig:
     workers: int = 0  # processes the fitting stages cut a take into (0: one per CPU core; on a GPU, one; N > 1 share it)
     min_frames_per_worker: int = 48  # a take shorter than twice this runs in one process
     dense_fps: float = 20.0  # sessions at this frame rate and above take the fits' *_dense budgets (`for_frame_rate`)
+    deterministic: bool = True  # on the CPU the same numbers every run (`parallel.repeatable`)
     frame_cache: bool = True  # decode depth and masks once a run into OUT/cache/frames/ (`session.frame_cache`)
 
 

@@ -211,7 +211,8 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
     metrics = read_json(metrics_path) if metrics_path.exists() else {}
 
     try:
-        _run_stages(session, for_frame_rate(cfg, session.fps), out_dir, names, metrics, progress)
+        with parallel.repeatable(cfg):
+            _run_stages(session, for_frame_rate(cfg, session.fps), out_dir, names, metrics, progress)
     finally:
         parallel.shutdown()  # the stages' worker processes
     if cfg.report.enabled:  # OUT/report/index.html; a failure there never loses the results above

@@ -187,7 +187,9 @@ def _cmd_calibrate(args) -> int:
     return calibrate_command(args)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The command line; given the `command` about to run, the other commands' options that need
+    heavy imports (the generator's torch and trimesh, calibration's open3d) are left out."""
     parser = argparse.ArgumentParser(prog="intercap", description="Multi-view RGB-D human-object capture.")
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -242,21 +244,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=_cmd_report)
 
     p = sub.add_parser("synth", help="write a synthetic session with ground truth")
-    from intercap.synth.generator import build_arg_parser
+    if command in (None, "synth"):
+        from intercap.synth.generator import build_arg_parser
 
-    build_arg_parser(p)  # adds OUT and the generator's options
+        build_arg_parser(p)  # adds OUT and the generator's options
     p.set_defaults(func=_cmd_synth)
 
     p = sub.add_parser("calibrate", help="rig extrinsics from a recording of a ChArUco or checkerboard board")
-    from intercap.calib.board import add_calibrate_arguments
+    if command in (None, "calibrate"):
+        from intercap.calib.board import add_calibrate_arguments
 
-    add_calibrate_arguments(p)
+        add_calibrate_arguments(p)
     p.set_defaults(func=_cmd_calibrate)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    given = sys.argv[1:] if argv is None else argv
+    args = build_parser(next((a for a in given if not a.startswith("-")), None)).parse_args(argv)
     logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from intercap.config import ConfigError
     from intercap.pipeline import StageError

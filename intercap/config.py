@@ -104,6 +104,8 @@ class ObjectConfig:
     near_margin_m: float = 0.05  # derived masks: object pixels lie within this of the predicted bounding sphere
     checkpoint_every: int = 10
     overlay_every: int = 10
+    seam_agree_frames: int = 3  # a chunk's own poses stand once this many frames tracked on across its seam match them
+    seam_agree_mm: float = 10.0  # match: the posed surfaces this close (ADD-S: a symmetric object's look-alike pose matches)
     seed: int = 0
 
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import hashlib
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -752,10 +753,17 @@ TRACKED, REINITIALISED, LOST, UNTRUSTED = 1, 2, 3, 4
 STATUS_NAMES = {0: "pending", TRACKED: "tracked", REINITIALISED: "reinitialised", LOST: "lost", UNTRUSTED: "untrusted"}
 
 
+def untracked(T: int) -> dict[str, np.ndarray]:
+    """`track_steps`'s state of T frames not yet tracked (status 0, pending)."""
+    return {"R": np.full((T, 3, 3), np.nan), "t": np.full((T, 3), np.nan), "confidence": np.zeros(T),
+            "status": np.zeros(T, np.int64), "energy": np.full(T, np.nan), "confirmed": np.zeros(T, bool)}
+
+
 def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None = None, initial_pose=None,
-                queue=None):
+                queue=None, until=None):
     """Search (see `run_searches`): track the object through `frame_ids`; resumes from
-    `checkpoint` when it exists.
+    `checkpoint` when it exists; with `until(i, state)`, stops after the first frame i where it
+    holds (later frames stay pending, status 0).
 
     Per frame: fit from the constant-velocity prediction (or, for up to
     `coast_frames` after the last trusted frame, from that frame's pose). A fit
@@ -774,8 +782,7 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path 
     finished frame is put on it (`intercap.parallel`)."""
     cfg = tracker.cfg
     T = len(frame_ids)
-    state = {"R": np.full((T, 3, 3), np.nan), "t": np.full((T, 3), np.nan), "confidence": np.zeros(T),
-             "status": np.zeros(T, np.int64), "energy": np.full(T, np.nan), "confirmed": np.zeros(T, bool)}
+    state = untracked(T)
     start = 0
     if checkpoint is not None and checkpoint.exists():
         saved = dict(np.load(checkpoint))
@@ -856,11 +863,82 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path 
         else:
             state["status"][i] = UNTRUSTED if fit is not None else LOST
         history.append((fit.R, fit.t) if trusted else None)
-        if checkpoint is not None and ((i + 1) % cfg.checkpoint_every == 0 or i + 1 == T):
+        done = until is not None and until(i, state)
+        if checkpoint is not None and ((i + 1) % cfg.checkpoint_every == 0 or i + 1 == T or done):
             save_npz(checkpoint, next=i + 1, **state)
         if queue is not None:
             queue.put(1)
+        if done:
+            break
     return state
+
+
+def join_seams(tracker: ObjectTracker, frame_ids: np.ndarray, state: dict, starts: list[int],
+               stage_dir: Path) -> tuple[dict, int]:
+    """Track on across the chunks' seams, as one process tracking the whole take would.
+
+    A chunk after the first starts cold, from registration; where the object is in a hand and no
+    mask separates them, that can lock onto the wrong thing for the whole chunk (a held-out cup,
+    3 views without masks: 0.5-0.8 m off from the seam on, against under 50 mm tracked in one
+    process). Each chunk start `lo` (in `starts`) is tracked again from the frames before it until
+    `seam_agree_frames` frames in a row match the chunk's own poses (`seam_agree_mm` of ADD-S: a
+    box's cold start may find it turned by its symmetry; a cold start that was right costs those
+    few frames); from there the chunk's poses stand. A seam whose
+    frames before it changed is tracked again, until none does; the seams of a round side by side.
+    Each keeps a checkpoint named by the frames it starts from. Returns the state and the number
+    of frames tracked again."""
+    from scipy.spatial import cKDTree
+
+    cfg = tracker.cfg
+    before = max(cfg.energy_window, cfg.coast_frames, 5)  # what `track_steps` looks back on
+    corners = tracker.world_vertices_np(np.eye(3), np.zeros(3))
+    corners = corners[np.linspace(0, len(corners) - 1, min(len(corners), 500)).astype(int)]
+
+    def matches(a: tuple, b: tuple) -> bool:  # ADD-S of the posed points within seam_agree_mm
+        posed_a, posed_b = corners @ a[0].T + a[1], corners @ b[0].T + b[1]
+        return float(cKDTree(posed_a).query(posed_b)[0].mean()) <= cfg.seam_agree_mm / 1000
+    ends = starts[1:] + [len(frame_ids)]
+    chunk_state = {key: value.copy() for key, value in state.items()}
+    seeded: dict[int, str] = {}
+    retracked = 0
+    while True:
+        jobs = []
+        for lo, hi in zip(starts, ends):
+            a = max(0, lo - before)
+            prefix = {key: state[key][a:lo] for key in sorted(state)}
+            seed = hashlib.sha1(b"".join(np.ascontiguousarray(v).tobytes() for v in prefix.values())).hexdigest()[:12]
+            if seeded.get(lo) == seed:
+                continue
+            seeded[lo] = seed
+            checkpoint = stage_dir / f"seam_{lo:06d}_{seed}.npz"
+            for stale in stage_dir.glob(f"seam_{lo:06d}_*.npz"):
+                if stale != checkpoint:
+                    stale.unlink()
+            if not checkpoint.exists():
+                pending = untracked(hi - lo)
+                rows = {key: np.concatenate([prefix[key], pending[key]]) for key in prefix}
+                save_npz(checkpoint, next=lo - a, **rows)
+
+            def agrees(i: int, sub: dict, a=a, lo=lo) -> bool:
+                if i - (lo - a) + 1 < cfg.seam_agree_frames:
+                    return False
+                rows = range(a + i - cfg.seam_agree_frames + 1, a + i + 1)
+                trusted = (TRACKED, REINITIALISED)
+                return all(sub["status"][r - a] in trusted and chunk_state["status"][r] in trusted
+                           and matches((sub["R"][r - a], sub["t"][r - a]), (chunk_state["R"][r], chunk_state["t"][r]))
+                           for r in rows)
+
+            jobs.append((lo, hi, a, track_steps(tracker, frame_ids[a:hi], checkpoint, None, None, agrees)))
+        if not jobs:
+            return state, retracked
+        for (lo, hi, a, _), sub in zip(jobs, run_searches(tracker, [job[3] for job in jobs])):
+            tracked = lo + int(np.flatnonzero(sub["status"][lo - a:] != 0).max(initial=-1)) + 1
+            log.info("object: tracked on across the seam at frame %d: %d frames (%s)", int(frame_ids[lo]),
+                     tracked - lo, "then the chunk's own poses" if tracked < hi else "the whole chunk")
+            retracked += tracked - lo
+            for key in state:
+                state[key][lo:tracked] = sub[key][lo - a:tracked - a]
+                state[key][tracked:hi] = chunk_state[key][tracked:hi]
 
 
 def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) -> list[dict[str, np.ndarray]]:
@@ -907,6 +985,8 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                                           progress) for part in group]
     state = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
     tracker = ObjectTracker(session, ocfg, session.object.load_mesh(), device=cfg.run.device)
+    starts = [chunk.lo for group in groups for chunk in group][1:]
+    state, retracked = join_seams(tracker, session.frame_ids, state, starts, stage_dir) if starts else (state, 0)
     valid = np.isin(state["status"], (TRACKED, REINITIALISED))
     save_npz(stage_dir / "object_poses.npz", R=state["R"], t=state["t"], confidence=state["confidence"],
              valid=valid, status=state["status"], frame_ids=session.frame_ids)
@@ -923,4 +1003,6 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         "frames_trusted": int(valid.sum()),
         **{f"frames_{k}": v for k, v in counts.items()},
         "mean_confidence": float(state["confidence"][valid].mean()) if valid.any() else 0.0,
+        "seams": len(starts),
+        "seam_frames_tracked_again": retracked,
     }

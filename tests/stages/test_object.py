@@ -407,3 +407,33 @@ def test_read_ahead_gives_the_observation_read_in_place(box_session, monkeypatch
     monkeypatch.setattr(derived, "device", SimpleNamespace(type="cuda"))
     derived.read_ahead(frame)
     assert derived._ahead == {}
+
+
+def test_seams_are_tracked_across_as_one_process_tracks_them(box_session, tmp_path):
+    """A chunk whose cold start locked onto the wrong thing (here 0.5 m off) is tracked again from
+    its seam to its end, as one process tracks the take; a chunk that started right keeps its own
+    poses after `seam_agree_frames` frames that match them."""
+    from intercap.stages.object import join_seams, run_searches, track_steps
+
+    cfg = load_config()
+    session = Session.load(box_session)
+    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
+    (whole,) = run_searches(tracker, [track_steps(tracker, session.frame_ids, None, session.object.initial_pose)])
+    lo = 4
+    assert np.isin(whole["status"][lo:lo + 3], (1, 2)).all()  # trusted where the seam is checked
+
+    def chunks(offset_m: float) -> dict:
+        state = {key: value.copy() for key, value in whole.items()}
+        state["t"][lo:] += [offset_m, 0.0, 0.0]
+        return state
+
+    joined, again = join_seams(tracker, session.frame_ids, chunks(0.5), [lo], tmp_path / "wrong")
+    assert again == FRAMES - lo
+    assert np.allclose(joined["t"], whole["t"], atol=1e-4, equal_nan=True)
+    assert (joined["status"] == whole["status"]).all()
+
+    right = chunks(0.002)  # within seam_agree_mm: the chunk's own poses, told apart by 2 mm
+    joined, again = join_seams(tracker, session.frame_ids, chunks(0.002), [lo], tmp_path / "right")
+    assert again == cfg.object.seam_agree_frames
+    assert np.allclose(joined["t"][lo:lo + again], whole["t"][lo:lo + again], atol=1e-4)
+    assert np.array_equal(joined["t"][lo + again:], right["t"][lo + again:])

@@ -883,20 +883,20 @@ def join_seams(tracker: ObjectTracker, frame_ids: np.ndarray, state: dict, start
     process). Each chunk start `lo` (in `starts`) is tracked again from the frames before it until
     `seam_agree_frames` frames in a row match the chunk's own poses (`seam_agree_mm` of ADD-S: a
     box's cold start may find it turned by its symmetry; a cold start that was right costs those
-    few frames); from there the chunk's poses stand. A seam whose
-    frames before it changed is tracked again, until none does; the seams of a round side by side.
-    Each keeps a checkpoint named by the frames it starts from. Returns the state and the number
-    of frames tracked again."""
+    few frames); from there the chunk's poses stand. A seam whose frames before it changed is
+    tracked again, until none does; the seams of a round side by side. Each keeps a checkpoint
+    named by the frames it starts from. Returns the state and the number of frames tracked again."""
     from scipy.spatial import cKDTree
 
     cfg = tracker.cfg
     before = max(cfg.energy_window, cfg.coast_frames, 5)  # what `track_steps` looks back on
-    corners = tracker.world_vertices_np(np.eye(3), np.zeros(3))
-    corners = corners[np.linspace(0, len(corners) - 1, min(len(corners), 500)).astype(int)]
+    points = tracker.world_vertices_np(np.eye(3), np.zeros(3))
+    points = points[np.linspace(0, len(points) - 1, min(len(points), 500)).astype(int)]
 
     def matches(a: tuple, b: tuple) -> bool:  # ADD-S of the posed points within seam_agree_mm
-        posed_a, posed_b = corners @ a[0].T + a[1], corners @ b[0].T + b[1]
+        posed_a, posed_b = points @ a[0].T + a[1], points @ b[0].T + b[1]
         return float(cKDTree(posed_a).query(posed_b)[0].mean()) <= cfg.seam_agree_mm / 1000
+
     ends = starts[1:] + [len(frame_ids)]
     chunk_state = {key: value.copy() for key, value in state.items()}
     seeded: dict[int, str] = {}
@@ -931,6 +931,8 @@ def join_seams(tracker: ObjectTracker, frame_ids: np.ndarray, state: dict, start
             jobs.append((lo, hi, a, track_steps(tracker, frame_ids[a:hi], checkpoint, None, None, agrees)))
         if not jobs:
             return state, retracked
+        log.info("object: tracking on across the seam(s) at frame(s) %s",
+                 ", ".join(str(int(frame_ids[job[0]])) for job in jobs))
         for (lo, hi, a, _), sub in zip(jobs, run_searches(tracker, [job[3] for job in jobs])):
             tracked = lo + int(np.flatnonzero(sub["status"][lo - a:] != 0).max(initial=-1)) + 1
             log.info("object: tracked on across the seam at frame %d: %d frames (%s)", int(frame_ids[lo]),

@@ -86,8 +86,14 @@ class FrameCache:
             return None
         H, W = self.sizes[c]
         size = slot_bytes(kind, H, W)
-        slot = np.empty((H, W), "<u2") if kind == "depth" else np.empty(size, np.uint8)
-        if os.preadv(self._fds[(c, kind)], [slot], t * size) != size:
+        slot = np.empty((H, W), "<u2") if kind == "depth" else np.empty(size, np.uint8)  # writable, as a PNG's
+        if hasattr(os, "preadv"):  # straight into the array
+            got = os.preadv(self._fds[(c, kind)], [slot], t * size)
+        else:  # macOS before 11
+            data = os.pread(self._fds[(c, kind)], size, t * size)
+            got = len(data)
+            slot.reshape(-1).view(np.uint8)[:got] = np.frombuffer(data, np.uint8)
+        if got != size:
             raise OSError(f"{self.folder}: frame cache truncated at camera {c}, {kind}, frame {frame_id}")
         return slot if kind == "depth" else np.unpackbits(slot, count=H * W).reshape(H, W).view(bool)
 

@@ -206,7 +206,7 @@ class Session:
     def read_depth(self, cam: str | int, frame_id: int) -> np.ndarray | None:
         """(H, W) float32 metres (0 = no measurement), or None for a dropped/unreadable frame."""
         img = self.read_depth_millimetres(cam, frame_id)
-        return None if img is None else img.astype(np.float32) / np.float32(1000.0)
+        return None if img is None else np.divide(img, np.float32(1000.0), dtype=np.float32)
 
     def read_mask(self, cam: str | int, frame_id: int, kind: str) -> np.ndarray | None:
         """(H, W) bool (pixel > 127) for kind 'person' or 'object'; None when absent/unreadable."""

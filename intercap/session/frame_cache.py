@@ -107,7 +107,8 @@ def build(session, out_dir: Path | str, progress: bool = True) -> bool:
     from intercap.session.session import in_threads
 
     folder = cache_dir(out_dir)
-    if attach(session, out_dir):
+    signature = _signature(session)
+    if attach(session, out_dir, signature):
         return True
     need = cache_bytes(session)
     shutil.rmtree(folder, ignore_errors=True)
@@ -118,7 +119,6 @@ def build(session, out_dir: Path | str, progress: bool = True) -> bool:
                     need / 1e9, free / 1e9, folder)
         shutil.rmtree(folder, ignore_errors=True)
         return False
-    signature = _signature(session)
     T, keys = session.num_frames, _stored(session)
     present = {key: np.zeros(T, bool) for key in keys}
     fds = {key: os.open(folder / f"{key[0]}_{key[1]}.bin", os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
@@ -153,19 +153,20 @@ def build(session, out_dir: Path | str, progress: bool = True) -> bool:
     manifest = {"version": VERSION, "signature": signature, "frames": T, "dropped": dropped,
                 "present": {f"{c}_{kind}": np.flatnonzero(~mask).tolist() for (c, kind), mask in present.items()}}
     (folder / MANIFEST).write_text(json.dumps(manifest))  # last: a killed build leaves no manifest
-    return attach(session, out_dir)
+    return attach(session, out_dir, signature)
 
 
-def attach(session, out_dir: Path | str) -> bool:
+def attach(session, out_dir: Path | str, signature: str | None = None) -> bool:
     """Make `session` read depth and masks from OUT/cache/frames/ when a cache of these very files
-    is there (True); else leave it reading its PNGs (False)."""
+    is there (True); else leave it reading its PNGs (False). `signature`: the session files'
+    (`_signature`), when the caller has it already."""
     folder = cache_dir(out_dir)
     try:
         manifest = json.loads((folder / MANIFEST).read_text())
     except (OSError, ValueError):
         return False
     if (manifest.get("version"), manifest.get("frames")) != (VERSION, session.num_frames) \
-            or manifest.get("signature") != _signature(session):
+            or manifest.get("signature") != (signature or _signature(session)):
         return False
     present = {}
     for key in _stored(session):

@@ -548,6 +548,20 @@ class Observations:
 # The stage
 # ---------------------------------------------------------------------------
 
+def nothing_to_refine(out_dir: Path) -> str | None:
+    """Why the joint fit has nothing to refine (the body fitted in no frame, or the object tracked in
+    none: a person never seen, an object never found), or None. The per-frame results then stand,
+    and the later stages run on them, as for a session without an object."""
+    for stage, name, what in (("body", "body_params.npz", "no frame has a body fit"),
+                              ("object", "object_poses.npz", "the object was tracked in no frame")):
+        path = per_frame_result(out_dir, stage, name)
+        if path.exists():
+            with np.load(path) as saved:
+                if not saved["valid"].any():
+                    return f"{what} ({path})"
+    return None  # missing files: `load_per_frame` says which stage to run
+
+
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     """The `global` stage; see the module docstring. The take is fitted in chunks of frames by
     `run.workers` processes (`intercap.parallel`), each chunk with a window's overlap of context
@@ -556,6 +570,10 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         log.info("global: the session has no object; the per-frame body results stand")
         return {"skipped": "no object in session"}
     out_dir = Path(out_dir)
+    reason = nothing_to_refine(out_dir)
+    if reason is not None:
+        log.warning("global: skipped: %s; the per-frame results stand", reason)
+        return {"skipped": reason}
     (out_dir / "global").mkdir(parents=True, exist_ok=True)
     g = cfg.global_
     T = session.num_frames

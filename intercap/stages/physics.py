@@ -279,7 +279,7 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
         obj_active = np.nan_to_num(heights, nan=np.inf) < pc.object_ground_m
         obj_on_ground = obj_active.any(1)
         hand_active = hand_contacts(out_dir, T) & obj_valid[:, None]
-        if np.isfinite(object_mass):
+        if np.isfinite(object_mass) and obj_valid.any():
             Ro, w_o, al_o = kin.quaternion_derivatives(kin.fill_gaps(R_obj, obj_valid), fps, **filt)
             _, _, acc_o = kin.derivatives(kin.fill_gaps(centres, obj_valid), fps, **filt)
             Fo, No = ne.rigid_body_wrench(object_mass, td(Ro @ inertia_local @ Ro.transpose(0, 2, 1)), td(acc_o),
@@ -287,6 +287,8 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
             obj_wrench = torch.cat([Fo, No], -1).numpy()
             obj_wrench[~obj_valid] = np.nan
             obj_com_w = kin.fill_gaps(centres, obj_valid)
+        elif not obj_valid.any():
+            log.warning("physics: the object was tracked in no frame; hand and object forces are skipped")
         else:
             log.warning("physics: object mass %s; hand and object forces are skipped", object_source)
 
@@ -350,7 +352,9 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
     figures.update({
         "body_mass_kg": body_mass, "body_mass_source": body_source,
         "object_mass_kg": None if not np.isfinite(object_mass) else object_mass, "object_mass_source": object_source,
-        "object_forces": "solved" if object_known else f"skipped: object mass {object_source}" if has_object else "no object",
+        "object_forces": ("solved" if object_known else "no object" if not has_object
+                          else "skipped: object tracked in no frame" if not obj_valid.any()
+                          else f"skipped: object mass {object_source}"),
         "ground_source": ground_source, "frames_valid": int(valid.sum()),
     })
     if valid.any():

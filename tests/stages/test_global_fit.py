@@ -376,3 +376,28 @@ def test_a_gpu_fits_longer_windows_than_the_cpu():
     cpu = load_config(overrides=["global.window_frames=40", "global.window_frames_gpu=120"])
     gpu = load_config(overrides=["run.device=cuda:0", "global.window_frames=40", "global.window_frames_gpu=120"])
     assert (window_frames(cpu), window_frames(gpu)) == (40, 120)
+
+
+def test_an_object_never_tracked_leaves_the_body_results_standing(sample, tmp_path):
+    """An object tracked in no frame (never found without masks) skips the joint fit with its reason;
+    the per-frame body stands, and physics and export still run on it."""
+    from intercap.io.files import publish
+    from intercap.pipeline import run_pipeline
+
+    poses = np.load(GT / "object_poses.npz")
+    write_per_frame(tmp_path, sample, gt_body(), poses["R"], poses["t"], np.zeros(sample.num_frames, bool))
+    untracked = dict(np.load(tmp_path / "object" / "object_poses.npz"))
+    untracked["valid"][:] = False
+    save_npz(tmp_path / "object" / "object_poses.npz", **untracked)
+    for stage, name in (("body", "body_params.npz"), ("object", "object_poses.npz")):
+        publish(tmp_path / stage / name, tmp_path / name)
+    for name in ("body_vertices.npy", "body_faces.npy"):  # the body stage's meshes
+        publish(GT / name, tmp_path / name)
+    metrics = run_pipeline(SAMPLE_SESSION, tmp_path, load_config(), stages=["global", "physics", "export"],
+                           progress=False)
+    assert "tracked in no frame" in metrics["global"]["skipped"]
+    assert np.array_equal(np.load(tmp_path / "body_params.npz")["body_pose"], gt_body()["body_pose"])
+    assert metrics["physics"]["object_forces"] == "skipped: object tracked in no frame"
+    assert metrics["physics"]["frames_valid"] > 0
+    assert metrics["export"]["body_meshes"] == sample.num_frames
+    assert metrics["export"]["object_meshes"] == 0

@@ -128,6 +128,11 @@ class BodyConfig:
     min_points: int = 100  # a view's depth counts when its person mask gives this many points
     points_per_view: int = 400  # segmented depth points per view used by E_D
     person_erode_px: int = 2  # drop mask border pixels (mixed depth) at 640 px width, scaled with it
+    # A person who stays in place all take is in the depth background too: when under this share of a
+    # view's confident body keypoints lie on the depth foreground, the mask is the keypoint box's pixels
+    # within `still_person_band_m` of the keypoints' depths and above the floor (`PersonPoints.still_mask`).
+    still_person_keypoints: float = 0.5
+    still_person_band_m: float = 0.2
     keypoint_rho: float = 100.0  # Geman-McClure scale of E_J, pixels at a 1000 px focal length (final phase)
     keypoint_rho_start: float = 400.0  # the same in the first phases: far-off starts are not outliers
     hand_keypoint_weight: float = 1.0  # per-joint weight of the 2 x 21 hand keypoints (body: 1)

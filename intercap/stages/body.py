@@ -150,6 +150,12 @@ class KeypointSource:
         return out
 
 
+def pixels_inside(keypoints: np.ndarray, height: int, width: int) -> np.ndarray:
+    """(N, 2) integer pixels (x, y) of the confident keypoints (K, 3) that lie in the image."""
+    xy = np.round(keypoints[keypoints[:, 2] > 0, :2]).astype(int)
+    return xy[(xy[:, 0] >= 0) & (xy[:, 0] < width) & (xy[:, 1] >= 0) & (xy[:, 1] < height)]
+
+
 class PersonPoints:
     """Segmented person points per view: the session's person masks, or depth foreground minus the
     object (its mask, or its tracked pose rendered) inside the keypoints' bounding box."""
@@ -167,6 +173,13 @@ class PersonPoints:
         self._lock = threading.Lock()
         self._object = None
         self._T = cameras.T_world_from_cam.cpu().numpy()  # for `frame`'s points
+        self.ground = None  # (point, normal) of the floor, when prepare found it (`still_mask`)
+        self.still_views = 0  # view-frames whose mask `still_mask` made, so far
+        if (Path(out_dir) / "prepare" / "ground.json").exists():
+            from intercap.stages.prepare import load_ground
+
+            plane = load_ground(out_dir)
+            self.ground = (np.asarray(plane.point, np.float64), np.asarray(plane.normal, np.float64))
         poses = per_frame_result(out_dir, "object", "object_poses.npz")
         if derives and session.object is not None and poses.exists():
             data = np.load(poses)
@@ -208,23 +221,59 @@ class PersonPoints:
         else:
             from intercap.geometry.segmentation import foreground_mask
 
-            mask = foreground_mask(depth, self._backgrounds()[c]) & ~self.object_mask(c, frame_id, depth.shape)
             seen = keypoints[:, 2] > 0
             if seen.sum() < 3:
                 return None
             lo, hi = keypoints[seen, :2].min(0), keypoints[seen, :2].max(0)
             pad = 0.15 * (hi - lo).max()
-            box = np.zeros_like(mask)
+            box = np.zeros(depth.shape, bool)
             x0, y0 = np.maximum(np.floor(lo - pad), 0).astype(int)
             x1, y1 = np.ceil(hi + pad).astype(int)
             box[y0:y1 + 1, x0:x1 + 1] = True
-            mask &= box
+            mask = foreground_mask(depth, self._backgrounds()[c]) & box
+            if self.on_mask(mask, keypoints[:NUM_BODY]) < self.cfg.still_person_keypoints:
+                mask = self.still_mask(c, depth, keypoints[:NUM_BODY], box)
+                with self._lock:
+                    self.still_views += 1
+            mask &= ~self.object_mask(c, frame_id, depth.shape)
         if mask is None:
             return None
         erode = int(round(self.cfg.person_erode_px * mask.shape[1] / 640))
         if erode > 0:
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode + 1, 2 * erode + 1))
             mask = cv2.erode(mask.astype(np.uint8), kernel).astype(bool)
+        return mask
+
+    @staticmethod
+    def on_mask(mask: np.ndarray, keypoints: np.ndarray, radius_px: int = 2) -> float:
+        """The share of the confident keypoints (K, 3) that lie on the mask: at least half the pixels
+        within `radius_px` are on it (depth noise speckles a background that took the person in)."""
+        xy = pixels_inside(keypoints, *mask.shape)
+        if not len(xy):
+            return 1.0  # nothing to tell by
+        share = cv2.blur(mask.astype(np.float32), (2 * radius_px + 1,) * 2)
+        return float((share[xy[:, 1], xy[:, 0]] >= 0.5).mean())
+
+    def still_mask(self, c: int, depth: np.ndarray, keypoints: np.ndarray, box: np.ndarray) -> np.ndarray:
+        """The person of view c when the depth background took them in (they stood there all take):
+        the box's pixels within `still_person_band_m` of the depths under the keypoints (K, 3), the
+        floor (within 3 cm of the ground plane, when known) left out; the wall behind lies further."""
+        H, W = depth.shape
+        xy = pixels_inside(keypoints, H, W)
+        under = [depth[max(y - 2, 0):y + 3, max(x - 2, 0):x + 3] for x, y in xy]
+        z = np.array([np.median(p[p > 0]) for p in under if (p > 0).any()])
+        if len(z) < 3:
+            return np.zeros((H, W), bool)
+        lo, hi = np.percentile(z, 10) - self.cfg.still_person_band_m, np.percentile(z, 90) + self.cfg.still_person_band_m
+        mask = box & (depth > lo) & (depth < hi)
+        if self.ground is not None:
+            point, normal = self.ground
+            ys, xs = np.nonzero(mask)
+            rays = self.rays[c].numpy().reshape(H, W, 2)[ys, xs]
+            cam = np.concatenate([rays, np.ones((len(ys), 1), np.float32)], 1) * depth[ys, xs, None]
+            world = cam @ self._T[c, :3, :3].T + self._T[c, :3, 3]
+            floor = (world - point) @ normal < 0.03
+            mask[ys[floor], xs[floor]] = False
         return mask
 
     def batch(self, frame_ids: np.ndarray, keypoints: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
@@ -1064,7 +1113,10 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                             fit_to_data_mm=gap.astype(np.float32), reinitialised=reinitialised)
     # detections dropped for disagreeing with the other views (this run's batches; `reject_disagreeing_views`)
     rejected = sum(int(p.get("keypoints_rejected", 0)) for p in parts)
-    return {**figures, "keypoints_rejected_by_views": rejected, "workers": len(groups),
+    # view-frames whose person the depth background had taken in, masked by `PersonPoints.still_mask`
+    still = sum(int(p.get("person_masks_still", 0)) for p in parts)
+    return {**figures, "keypoints_rejected_by_views": rejected, "person_masks_from_keypoint_depth": still,
+            "workers": len(groups),
             "chunks": len(parts)}
 
 
@@ -1170,6 +1222,7 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
     prior = np.full(T, np.nan)  # the learned pose prior's energy of each frame's fit
     reinitialised = np.zeros(T, bool)
     rejected = 0  # keypoints dropped by the view check in this run's batches
+    still = 0  # view-frames whose person stood in the depth background (`PersonPoints.still_mask`)
     sized = None  # the template's phenotype from the person's measured size (NaN: the template's own kept)
     shape_estimates = {}  # first row of a batch -> the phenotype fitted on it; `shape_batches` of them, then held
     workshop.shape_estimates.append(shape_estimates)
@@ -1205,7 +1258,9 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
         before = keypoint_source.rejected  # the reader is the process's: its count, this chunk's part of it
         kps = keypoint_source.batch(ids, bcfg.min_keypoint_confidence)
         rejected += keypoint_source.rejected - before
+        before = person.still_views
         points, point_valid = person.batch(ids, kps)
+        still += person.still_views - before
         device = cameras.K.device
         obs = BodyObservations(ids, torch.from_numpy(kps).to(device), points.to(device), point_valid.to(device))
         usable = usable_frames(obs.keypoints, obs.point_valid, bcfg).cpu().numpy()
@@ -1265,7 +1320,8 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
                  shape_estimate_rows=np.array(list(shape_estimates), np.int64),
                  **({} if sized is None else {"sized_shape": sized}))
     return {"params": fitted.to_numpy_dict(), "valid": valid, "reprojection_px": reproj, "seconds": seconds,
-            "fit_to_data_mm": gap, "reinitialised": reinitialised, "keypoints_rejected": rejected}
+            "fit_to_data_mm": gap, "reinitialised": reinitialised, "keypoints_rejected": rejected,
+            "person_masks_still": still}
 
 
 PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy")

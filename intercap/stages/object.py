@@ -999,6 +999,11 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     counts = {STATUS_NAMES[s]: int((state["status"] == s).sum()) for s in (TRACKED, REINITIALISED, LOST, UNTRUSTED)}
     images = session.num_cameras * session.num_frames
     derived = int(session.missing("mask_object").sum()) if tracker.session_masks else images
+    if not valid.any():
+        log.warning("object: the object was trusted in no frame%s", (
+            ": its masks were derived from depth, where an object that stays in place (or a person who"
+            " does, holding it) is part of the background; give the session object masks" if derived else
+            ": check its masks and object.ply (OUT/object/overlays/)"))
     return {
         "masks": "session" if derived == 0 else ("derived" if derived == images else "session+derived"),
         "masks_derived_images": derived,

@@ -401,3 +401,42 @@ def test_an_object_never_tracked_leaves_the_body_results_standing(sample, tmp_pa
     assert metrics["physics"]["frames_valid"] > 0
     assert metrics["export"]["body_meshes"] == sample.num_frames
     assert metrics["export"]["object_meshes"] == 0
+
+
+def test_an_untrusted_object_pose_inside_the_body_moves_out_and_leaves_the_body(sample, model):
+    """E_P on an object pose put inside the torso: where the pose is trusted it pushes body and
+    object apart; where it is a guess (confidence 0, filled in) only the object moves."""
+    body, R, t, shape, cameras, grasping, data = grasping_window(sample, model)
+    with torch.no_grad():
+        torso = model(body).joints[:, 0]  # the pelvis
+    data = dataclasses.replace(data, object_confidence=torch.tensor([1.0, 1.0, 0.0, 0.0]))
+    fitter = GlobalFitter(model, cameras, load_config().body, load_config().global_, shape, None, sample.fps)
+    body.transl.requires_grad_(True)
+    centre = torso.clone().requires_grad_(True)
+    terms = fitter.energy_terms(body, R, centre, data, fitter.body.correspondences(body, data.obs))
+    assert (terms["interpenetration"] > 0).all()
+    terms["interpenetration"].sum().backward()
+    moves_body = body.transl.grad.norm(dim=1)
+    moves_object = centre.grad.norm(dim=1)
+    assert (moves_body[:2] > 0.1 * moves_object[:2]).all(), (moves_body, moves_object)
+    assert (moves_body[2:] == 0).all() and (moves_object[2:] > 0).all(), (moves_body, moves_object)
+
+
+def test_object_poses_fitted_to_the_person_are_found_inside_the_body(sample, model, tmp_path):
+    """The true held box is outside the body but for the fingers; the same box moved to the pelvis
+    (as a tracker without masks fits it to the person's points) is inside it."""
+    from intercap.io.files import publish
+
+    poses = np.load(GT / "object_poses.npz")
+    write_per_frame(tmp_path, sample, gt_body(), poses["R"], poses["t"], np.zeros(sample.num_frames, bool))
+    for name in ("body_vertices.npy", "body_faces.npy"):
+        publish(GT / name, tmp_path / "body" / name)
+    assert not global_fit.object_inside_body(sample, tmp_path, 0.1).any()
+    with torch.no_grad():
+        pelvis = model(BodyParams.from_numpy_dict(gt_body())).joints[:, 0].numpy()
+    mesh_centre = np.asarray(sample.object.load_mesh().vertices).mean(0)
+    moved = dict(np.load(tmp_path / "object" / "object_poses.npz"))
+    wrong = np.arange(sample.num_frames) % 3 == 0
+    moved["t"][wrong] = pelvis[wrong] - np.einsum("tij,j->ti", moved["R"][wrong], mesh_centre)
+    save_npz(tmp_path / "object" / "object_poses.npz", **moved)
+    assert np.array_equal(global_fit.object_inside_body(sample, tmp_path, 0.1), wrong)

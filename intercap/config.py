@@ -212,7 +212,9 @@ class GlobalConfig:
     correspondence_every: int = 5  # E_D / E_O data association refreshed every this many steps
     object_points_per_view: int = 300  # object depth points per view for E_O
     object_depth_scale_m: float = 0.02  # Geman-McClure scale of E_O's point-to-surface distance
-    sdf_resolution: int = 64  # object signed-distance grid cells along its longest side
+    sdf_resolution: int = 64  # object signed-distance grid: at least this many cells along its longest side,
+    sdf_cell_m: float = 0.005  # none wider than this (thin parts: a chair's 2 cm back panel; BENCHMARKS.md stop 39)
+    sdf_margin_m: float = 0.10  # and reaching at most this far beyond the object's box
     contact_vertices: int = 20  # E_C: the nearest this many vertices of a touching region
     hand_reach_m: float = 0.10  # a hand nearer than this to the object in a contact frame is grasping
     # A tracked object pose with more than this share of its surface samples 2 cm or more inside the

@@ -46,7 +46,7 @@ class SynthConfig:
     """Everything that defines a synthetic session (defaults: a full-size session)."""
 
     script: str = "pick_place"  # pick_place | lift_drink | push_chair | toss | hold | drop (physics) | turn
-    object: str | None = None  # box | cup | chair | block; default: the script's own
+    object: str | None = None  # `objects.OBJECT_NAMES`; default: the script's own
     frames: int | None = None  # None: the whole script at its natural speed; else resampled to this many
     fps: float = 30.0
     seed: int = 0
@@ -829,13 +829,14 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     if parser is None:
         parser = argparse.ArgumentParser(prog="python -m intercap.synth", description=__doc__.split("\n\n")[0])
     from intercap.synth.motions import SCRIPT_NAMES
+    from intercap.synth.objects import OBJECT_NAMES
 
     d = SynthConfig()
     parser.add_argument("out", metavar="OUT", help="session folder to write")
     parser.add_argument("--preset", choices=sorted(PRESETS), help="a named set of defaults (sample: the committed sample session)")
     parser.add_argument("--script", choices=list(SCRIPT_NAMES),
                         default=None, help="toss, hold, drop: known physics (ground_truth/physics.npz)")
-    parser.add_argument("--object", choices=["box", "cup", "chair", "block"], default=None,
+    parser.add_argument("--object", choices=list(OBJECT_NAMES), default=None,
                         help="default: the script's object")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (default: whole script at natural speed)")
     parser.add_argument("--fps", type=float, default=None)

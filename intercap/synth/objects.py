@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-OBJECT_NAMES = ("box", "cup", "chair", "block")
+OBJECT_NAMES = ("box", "cup", "chair", "block", "board")
 
 
 @dataclass(frozen=True)
@@ -107,7 +107,7 @@ def _vertices_near(mesh: trimesh.Trimesh, points, normals, radius: float) -> np.
 
 
 def make_object(name: str) -> ObjectSpec:
-    """The named object ('box', 'cup' or 'chair') with its grasps and contact vertices."""
+    """The named object (`OBJECT_NAMES`) with its grasps and contact vertices."""
     if name == "box":
         mesh = box_mesh()
         hx = mesh.bounds[1, 0]
@@ -150,6 +150,18 @@ def make_object(name: str) -> ObjectSpec:
             "left": Grasp((-hx, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
         }
         spec = dict(color=(214, 170, 60), mass_kg=0.5, radius=0.06)
+        contact_points = [g.point for g in grasps.values()]
+        contact_normals = [g.normal for g in grasps.values()]
+    elif name == "board":
+        # A thin board (a tray, a drawing board): 2 cm thick, palms on its two short edges. Depth sees it
+        # as little more than a plane, and a grid of 2 cm cells hardly sees inside it.
+        mesh = _box_mesh((0.40, 0.30, 0.02), max_edge=0.03)
+        hx = mesh.bounds[1, 0]
+        grasps = {
+            "right": Grasp((hx, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.6, -0.8)),
+            "left": Grasp((-hx, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.6, -0.8)),
+        }
+        spec = dict(color=(90, 160, 110), mass_kg=0.9, radius=0.10)
         contact_points = [g.point for g in grasps.values()]
         contact_normals = [g.normal for g in grasps.values()]
     else:

@@ -367,3 +367,20 @@ def test_hand_solvers_see_the_same_hands_on_the_sparse_forward():
                         palm_frames(sparse.keypoints, sparse.vertices, local[side], side)):
             assert torch.allclose(a, b, atol=1e-4)
         assert torch.allclose(full.vertices[:, geom[side].whole], sparse.vertices[:, local[side].whole], atol=1e-5)
+
+
+def test_a_thin_board_is_carried_by_its_edges(tmp_path):
+    """The 2 cm board (a thin object for held-out runs): a closed mesh whose grasped edges are its
+    contact vertices, and in contact frames both palms lie on those edges without sinking in."""
+    from intercap.synth.objects import make_object
+
+    board = make_object("board")
+    assert board.mesh.is_watertight and np.ptp(board.mesh.vertices[:, 2]) == pytest.approx(0.02)
+    edge_x = np.abs(board.mesh.vertices[board.contact_vertices, 0])
+    assert len(edge_x) > 4 and np.allclose(edge_x, 0.20)
+    session = generate_session(dataclasses.replace(TINY, object="board", frames=12), tmp_path / "board")
+    contact = np.load(session / "ground_truth/contact.npy")
+    info = json.loads((session / "ground_truth/info.json").read_text())
+    assert contact.any() and (np.abs(np.array(info["hand_object_distance_m"])[contact]) < 0.01).all()
+    for hand in info["hand_object"].values():
+        assert hand["palm_gap_max_m"] < 0.01 and hand["penetration_max_m"] < 0.01

@@ -107,7 +107,9 @@ def _vertices_near(mesh: trimesh.Trimesh, points, normals, radius: float) -> np.
 
 
 def make_object(name: str) -> ObjectSpec:
-    """The named object (`OBJECT_NAMES`) with its grasps and contact vertices."""
+    """The named object (`OBJECT_NAMES`) with its grasps and contact vertices (by default the faces
+    round its grasp points)."""
+    contact_points = contact_normals = None
     if name == "box":
         mesh = box_mesh()
         hx = mesh.bounds[1, 0]
@@ -118,8 +120,6 @@ def make_object(name: str) -> ObjectSpec:
             "left": Grasp((-hx, -0.01, 0.025), (-1.0, 0.0, 0.0), down_fwd),
         }
         spec = dict(color=(176, 128, 72), mass_kg=1.2, radius=0.13)
-        contact_points = [g.point for g in grasps.values()]
-        contact_normals = [g.normal for g in grasps.values()]
     elif name == "cup":
         mesh = cup_mesh()
         r = float(mesh.bounds[1, 0])
@@ -139,8 +139,6 @@ def make_object(name: str) -> ObjectSpec:
             "left": Grasp((-hw + 0.02, -hd + 0.02, top), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0)),
         }
         spec = dict(color=(60, 110, 190), mass_kg=4.5, radius=0.08)
-        contact_points = [g.point for g in grasps.values()]
-        contact_normals = [g.normal for g in grasps.values()]
     elif name == "block":
         # A small wooden block (tossed and caught): palms on its two short ends, fingers forward.
         mesh = _box_mesh((0.16, 0.10, 0.08), max_edge=0.02)
@@ -150,8 +148,6 @@ def make_object(name: str) -> ObjectSpec:
             "left": Grasp((-hx, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
         }
         spec = dict(color=(214, 170, 60), mass_kg=0.5, radius=0.06)
-        contact_points = [g.point for g in grasps.values()]
-        contact_normals = [g.normal for g in grasps.values()]
     elif name == "board":
         # A thin board (a tray, a drawing board): 2 cm thick, palms on its two short edges. Depth sees it
         # as little more than a plane, and a grid of 2 cm cells hardly sees inside it.
@@ -162,10 +158,11 @@ def make_object(name: str) -> ObjectSpec:
             "left": Grasp((-hx, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.6, -0.8)),
         }
         spec = dict(color=(90, 160, 110), mass_kg=0.9, radius=0.10)
-        contact_points = [g.point for g in grasps.values()]
-        contact_normals = [g.normal for g in grasps.values()]
     else:
         raise ValueError(f"unknown object {name!r}; choose one of {OBJECT_NAMES}")
+    if contact_points is None:
+        contact_points = [g.point for g in grasps.values()]
+        contact_normals = [g.normal for g in grasps.values()]
     contact = _vertices_near(mesh, contact_points, contact_normals, spec.pop("radius"))
     return ObjectSpec(name=name, mesh=mesh, grasps=grasps, contact_vertices=contact, **spec)
 

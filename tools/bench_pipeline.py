@@ -46,7 +46,8 @@ from pathlib import Path
 
 KEY_ACCURACY = [("body_surface_mm", "surface mm"), ("keypoint_mpjpe_mm", "MPJPE mm"), ("hand_keypoint_mm", "hands mm"),
                 ("object_adds_mm", "ADD-S mm"), ("object_add_mm", "ADD mm"), ("object_rotation_deg", "rot deg"),
-                ("penetration_mean_mm", "pen. mm"), ("contact_accuracy_pct", "contact %")]
+                ("penetration_mean_mm", "pen. mm"), ("contact_accuracy_pct", "contact %"),
+                ("contact_touch_accuracy_pct", "touch %")]
 
 
 def make_session(path: Path, synth: dict) -> float:

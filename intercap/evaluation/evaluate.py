@@ -25,6 +25,10 @@ Definitions:
   largest over those frames, ``_mean`` / ``_median`` the mean / median over
   those frames of the per-frame maximum (0 for a frame without penetration),
   as InterCap reports it.
+- contact_touch_*_pct: contact scored against geometry instead of the labels: frames where some
+  ground-truth body vertex lies within TOUCH_M of the ground-truth object (or inside it);
+  contact_label_is_touch_pct: how often the labels say the same (synthetic labels are the script's
+  grasp phases; hands touch a moment before and after).
 - jitter_mps2: mean vertex acceleration magnitude (second difference x fps^2).
 """
 from __future__ import annotations
@@ -46,6 +50,7 @@ from intercap.evaluation.metrics import (
     penetration_depths,
     rigid_jitter,
     summarise,
+    touching_frames,
     vertex_jitter,
 )
 from intercap.evaluation.physics_figures import physics_file, physics_metrics
@@ -53,6 +58,8 @@ from intercap.evaluation.table import json_list, jsonable
 from intercap.geometry.surfaces import TriangleSurface, symmetric_surface_distance
 from intercap.parallel import cpu_count
 from intercap.geometry.symmetry import detect_symmetry, rotation_angle_deg, symmetric_rotation_error_deg
+
+TOUCH_M = 0.005  # contact_touch_*: a body vertex this close to the object touches it
 
 RESULT_FILES = ("object_poses.npz", "body_vertices.npy", "body_faces.npy", "contact.npy", "keypoints3d.npy")
 
@@ -280,9 +287,20 @@ def _object_metrics(inp: _Inputs, symmetric_object: bool | None, surface_samples
 def _contact_metrics(inp: _Inputs) -> None:
     pred = np.asarray(inp.res["contact"])
     ok = np.isfinite(pred.astype(np.float64))  # a float contact.npy may mark untrusted frames NaN
-    acc, prec, rec = contact_scores(pred[ok] > 0.5, np.asarray(inp.gt["contact"], bool)[ok])
-    inp.result.metrics.update(contact_accuracy_pct=acc, contact_precision_pct=prec, contact_recall_pct=rec,
-                              contact_frames_missing=int((~ok).sum()))
+    label = np.asarray(inp.gt["contact"], bool)
+    acc, prec, rec = contact_scores(pred[ok] > 0.5, label[ok])
+    m = inp.result.metrics
+    m.update(contact_accuracy_pct=acc, contact_precision_pct=prec, contact_recall_pct=rec,
+             contact_frames_missing=int((~ok).sum()))
+    if inp.surface is None or not all(k in inp.gt for k in ("body_vertices", "object_R", "object_t")):
+        return
+    bv, Rg, tg = inp.gt["body_vertices"], inp.gt["object_R"], inp.gt["object_t"]
+    known = frames_finite(bv) & frames_finite(Rg) & frames_finite(tg)
+    touch = np.zeros(inp.T, bool)
+    touch[known] = touching_frames(bv[known], Rg[known], tg[known], inp.surface, TOUCH_M)
+    acc, prec, rec = contact_scores(pred[ok & known] > 0.5, touch[ok & known])
+    m.update(contact_touch_accuracy_pct=acc, contact_touch_precision_pct=prec, contact_touch_recall_pct=rec,
+             contact_label_is_touch_pct=float(100 * (label[known] == touch[known]).mean()) if known.any() else None)
 
 
 def _penetration_metrics(inp: _Inputs) -> None:

@@ -80,6 +80,19 @@ def penetration_depths(body_vertices, R, t, object_surface: TriangleSurface):
     return depth
 
 
+def touching_frames(body_vertices, R, t, object_surface: TriangleSurface, distance_m: float = 0.005):
+    """(T,) bool: some body vertex lies within `distance_m` of the posed object's surface, or inside
+    it. Geometry's contact, where a session's contact labels are its script's grasp phases (hands
+    touch a moment before a grasp begins and after it ends). Frames as `penetration_depths` does."""
+    lo, hi = object_surface.vertices.min(0) - distance_m, object_surface.vertices.max(0) + distance_m
+    touching = np.zeros(len(R), bool)
+    for s in range(len(R)):
+        local = (np.asarray(body_vertices[s], np.float64) - t[s]) @ R[s]
+        near = np.all((local >= lo) & (local <= hi), axis=1)
+        touching[s] = near.any() and float(object_surface.signed_distance(local[near]).min()) < distance_m
+    return touching
+
+
 def vertex_jitter(vertices, fps: float, chunk: int = 128):
     """Mean vertex acceleration magnitude (m/s^2) of a vertex track (T, V, 3).
 

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import hashlib
 import logging
 import time
 from dataclasses import dataclass
@@ -223,41 +224,63 @@ def load_contact_labels(out_dir: Path, T: int) -> tuple[np.ndarray, np.ndarray |
 # The object's geometry
 # ---------------------------------------------------------------------------
 
+def signed_distance_grid(vertices: np.ndarray, faces: np.ndarray, watertight: bool, resolution: int,
+                         cell_m: float | None, margin_m: float | None, cells_max: int) -> dict:
+    """`ObjectShape`'s grid: `sdf` (Z, Y, X) metres at the corners of cells from `lo` to `hi`."""
+    import open3d as o3d
+
+    lo, hi = vertices.min(0), vertices.max(0)
+    margin = 0.2 * float((hi - lo).max()) + 0.05
+    margin = min(margin, margin_m) if margin_m else margin
+    lo, hi = lo - margin, hi + margin
+    cell = float((hi - lo).max()) / resolution
+    if cell_m:
+        cell = max(min(cell, cell_m), (float(np.prod(hi - lo)) / cells_max) ** (1 / 3))
+    counts = np.ceil((hi - lo) / cell).astype(int) + 1
+    axes = [lo[k] + cell * np.arange(counts[k]) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).astype(np.float32)  # (X, Y, Z, 3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces))
+    if watertight:
+        sdf = scene.compute_signed_distance(grid.reshape(-1, 3)).numpy()
+    else:  # no inside to speak of: distances only, so nothing is pushed out of an open shell
+        sdf = scene.compute_distance(grid.reshape(-1, 3)).numpy()
+    # grid_sample wants (N, C, D, H, W) with x indexing W: store as (Z, Y, X).
+    return {"sdf": np.ascontiguousarray(sdf.reshape(grid.shape[:3]).transpose(2, 1, 0)),
+            "lo": lo, "hi": (lo + cell * (counts - 1)).astype(np.float32)}
+
+
 class ObjectShape:
     """The rigid object in its own coordinates: a signed-distance grid (trilinear, differentiable in
     the query points), surface samples for E_A / E_G, and its graspable points for E_C'."""
 
     def __init__(self, mesh: trimesh.Trimesh, resolution: int, grasp_ids: np.ndarray | None, samples: int = 256,
                  seed: int = 0, cell_m: float | None = None, margin_m: float | None = None,
-                 cells_max: int = 4_000_000):
+                 cells_max: int = 4_000_000, cache: Path | None = None):
         """`resolution` cells at least along the grid's longest side, none wider than `cell_m` (a
         chair's 2 cm back panel in 2 cm cells read as hardly inside: penetration seen 2.2 mm of 6.4),
         unless that takes more than `cells_max` cells; the grid reaches 0.2 of the object's size
         plus 5 cm, at most `margin_m`, beyond its box (further out: the border value plus the
-        distance to the grid, an overestimate)."""
-        import open3d as o3d
-
+        distance to the grid, an overestimate). With `cache` (an .npz) the grid is read from there
+        when it was built for the same mesh and settings, else built and written there: a chair's
+        takes 1.6 s, and every worker of the stage needs it."""
         vertices = np.asarray(mesh.vertices, dtype=np.float32)
-        lo, hi = vertices.min(0), vertices.max(0)
-        margin = 0.2 * float((hi - lo).max()) + 0.05
-        margin = min(margin, margin_m) if margin_m else margin
-        lo, hi = lo - margin, hi + margin
-        cell = float((hi - lo).max()) / resolution
-        if cell_m:
-            cell = max(min(cell, cell_m), (float(np.prod(hi - lo)) / cells_max) ** (1 / 3))
-        counts = np.ceil((hi - lo) / cell).astype(int) + 1
-        axes = [lo[k] + cell * np.arange(counts[k]) for k in range(3)]
-        grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).astype(np.float32)  # (X, Y, Z, 3)
-        scene = o3d.t.geometry.RaycastingScene()
-        scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(np.asarray(mesh.faces, dtype=np.uint32)))
-        if mesh.is_watertight:
-            sdf = scene.compute_signed_distance(grid.reshape(-1, 3)).numpy()
-        else:  # no inside to speak of: distances only, so nothing is pushed out of an open shell
-            sdf = scene.compute_distance(grid.reshape(-1, 3)).numpy()
+        faces = np.asarray(mesh.faces, dtype=np.uint32)
+        if not mesh.is_watertight:
             log.warning("global: the object mesh is not watertight; interpenetration is not measured")
-        # grid_sample wants (N, C, D, H, W) with x indexing W: store as (Z, Y, X).
-        self.sdf = torch.from_numpy(sdf.reshape(grid.shape[:3]).transpose(2, 1, 0).copy())[None, None]
-        self.lo, self.hi = torch.from_numpy(lo), torch.from_numpy(lo + cell * (counts - 1))
+        settings = np.array([resolution, cell_m or 0, margin_m or 0, cells_max], np.float64)
+        key = hashlib.sha1(vertices.tobytes() + faces.tobytes() + settings.tobytes()).hexdigest()
+        grid = None
+        if cache is not None and Path(cache).exists():
+            with np.load(cache) as saved:
+                if str(saved["key"]) == key:
+                    grid = {name: saved[name] for name in ("sdf", "lo", "hi")}
+        if grid is None:
+            grid = signed_distance_grid(vertices, faces, mesh.is_watertight, resolution, cell_m, margin_m, cells_max)
+            if cache is not None:
+                save_npz(cache, key=np.array(key), **grid)
+        self.sdf = torch.from_numpy(grid["sdf"])[None, None]
+        self.lo, self.hi = torch.from_numpy(grid["lo"]), torch.from_numpy(grid["hi"])
         points, _ = trimesh.sample.sample_surface_even(mesh, samples, seed=seed)
         self.samples = torch.as_tensor(np.asarray(points), dtype=torch.float32)  # (M, 3)
         ids = np.arange(len(vertices)) if grasp_ids is None or len(grasp_ids) == 0 else np.asarray(grasp_ids)
@@ -641,7 +664,8 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     if len(chunks) == 1:
         problem = GlobalProblem(session, cfg, out_dir)
         parts = run_chunks(fit_chunk, chunks, (session, cfg, out_dir, problem), T, "global", progress)
-    else:  # workers load the session and set up the problem themselves
+    else:  # workers load the session and set up the problem themselves, reading the grid built here
+        object_shape(session, g, out_dir)
         parts = run_chunks(fit_chunk, chunks, (session.root, cfg, out_dir, None), T, "global", progress)
         shutdown()  # no later stage has chunks: the idle workers' memory (~1 GB each) goes before the outputs'
         problem = GlobalProblem(session, cfg, out_dir)
@@ -657,6 +681,12 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                             problem.fitter.weight)
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
             "workers": len(chunks)}
+
+
+def object_shape(session, g, out_dir: Path) -> ObjectShape:
+    """The session object's `ObjectShape`, its grid cached in OUT/global/object_sdf.npz."""
+    return ObjectShape(session.object.load_mesh(), g.sdf_resolution, session.object.contact_vertices, seed=g.seed,
+                       cell_m=g.sdf_cell_m, margin_m=g.sdf_margin_m, cache=out_dir / "global" / "object_sdf.npz")
 
 
 class GlobalProblem:
@@ -676,8 +706,7 @@ class GlobalProblem:
         ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
         if ground is None:
             log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
-        self.shape = ObjectShape(session.object.load_mesh(), g.sdf_resolution, session.object.contact_vertices,
-                                 seed=g.seed, cell_m=g.sdf_cell_m, margin_m=g.sdf_margin_m)
+        self.shape = object_shape(session, g, out_dir)
         per_frame = self.per_frame
         if per_frame.hand_distance is None:
             per_frame.hand_distance = hand_object_distance(self.model, per_frame, self.shape)

@@ -230,6 +230,27 @@ def test_penetration_counts_only_contact_frames(tmp_path):
     assert r.per_frame["penetration_mm"][2] == pytest.approx(4.0, abs=1e-3)
 
 
+def test_contact_is_also_scored_against_the_bodys_distance_to_the_object(tmp_path):
+    """Labels are grasp phases; contact_touch_* score against geometry: a ground-truth body vertex
+    within 5 mm of the ground-truth object, or inside it."""
+    T = 5
+    R, t = gt_object_poses(T)
+    gap_mm = np.array([20.0, 3.0, -2.0, 4.0, 8.0])  # the body's lowest point above the box's top face
+    label = np.array([0, 0, 1, 1, 1], bool)
+    v, f = sphere(radius=0.05, subdivisions=2)
+    body = np.stack([(v + [0.01, -0.02, BOX[2] / 2 + gap_mm[i] / 1000.0 - v[:, 2].min()]) @ R[i].T + t[i]
+                     for i in range(T)])
+    session = write_session(tmp_path / "s", T=T, contact=label, body=(body, f))
+    m = evaluate(write_results(tmp_path / "labels", contact=label), session).metrics
+    assert m["contact_accuracy_pct"] == 100.0
+    assert m["contact_label_is_touch_pct"] == pytest.approx(60.0)  # frames 1 and 4 disagree
+    assert m["contact_touch_accuracy_pct"] == pytest.approx(60.0)
+    assert m["contact_touch_precision_pct"] == pytest.approx(200 / 3)
+    assert m["contact_touch_recall_pct"] == pytest.approx(200 / 3)
+    m = evaluate(write_results(tmp_path / "touch", contact=np.array([0, 1, 1, 1, 0], bool)), session).metrics
+    assert m["contact_touch_accuracy_pct"] == 100.0 and m["contact_accuracy_pct"] == pytest.approx(60.0)
+
+
 def test_signed_distance_inside_box():
     s = TriangleSurface(box_mesh().vertices, box_mesh().faces)
     pts = np.array([[0.0, 0.0, 0.0], [0.0, 0.0, 0.04], [0.09, 0.0, 0.0], [0.0, 0.0, 0.06], [0.11, 0.16, 0.0]])

@@ -10,6 +10,7 @@ import json
 import numpy as np
 import pytest
 import torch
+import trimesh
 from conftest import SAMPLE_SESSION
 
 from intercap.body_models import BodyParams, load_from_config
@@ -344,7 +345,6 @@ def test_the_config_section_is_spelled_global(tmp_path):
 def test_quality_figures_over_a_long_take_match_the_whole_take_definitions():
     """Computed FIGURE_FRAMES at a time (bounded memory on long takes), the stage's penetration and
     jitter equal their definitions over all frames at once, gaps and contact-only frames included."""
-    import trimesh
 
     rng = np.random.default_rng(0)
     T, V, fps = 2 * global_fit.FIGURE_FRAMES + 37, 50, 30.0
@@ -469,3 +469,24 @@ def test_the_signed_distance_grid_sees_into_the_top_of_a_chairs_back():
     assert abs(read[deep].mean() - exact[deep].mean()) < 0.0005
     assert read_coarse[deep].mean() > 0.7 * exact[deep].mean()  # the old grid: hardly half as deep
     assert shape.sdf.numel() <= 4_000_000
+
+
+def test_the_signed_distance_grid_is_built_once_and_rebuilt_when_its_settings_change(tmp_path, monkeypatch):
+    """The stage's workers read the grid the first one wrote (a chair's takes 1.6 s); a cache built for
+    other settings or another mesh is not read."""
+    box = trimesh.creation.box(extents=(0.3, 0.2, 0.1))
+    cache = tmp_path / "global" / "object_sdf.npz"
+    built = ObjectShape(box, 16, None, cell_m=0.01, cache=cache)
+    assert cache.exists()
+    builds = []
+    real = global_fit.signed_distance_grid
+    monkeypatch.setattr(global_fit, "signed_distance_grid", lambda *a: builds.append(a) or real(*a))
+    read = ObjectShape(box, 16, None, cell_m=0.01, cache=cache)
+    assert not builds and torch.equal(read.sdf, built.sdf) and torch.equal(read.hi, built.hi)
+    points = torch.tensor([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0]])
+    assert torch.allclose(read.signed_distance(points), torch.tensor([-0.05, 0.05]), atol=1e-3)
+    finer = ObjectShape(box, 16, None, cell_m=0.005, cache=cache)
+    assert len(builds) == 1 and finer.sdf.numel() > built.sdf.numel()
+    other = ObjectShape(trimesh.creation.box(extents=(0.3, 0.2, 0.2)), 16, None, cell_m=0.005, cache=cache)
+    assert len(builds) == 2
+    assert torch.allclose(other.signed_distance(points), torch.tensor([-0.1, 0.05]), atol=1e-3)

@@ -234,6 +234,7 @@ class GlobalConfig:
     w_flight: float = 1.0e9  # GraviCap: object centre onto the gravity parabola in free flight (m^2 per frame); 0 = off
     flight_min_frames: int = 8  # free flight: at least this many frames touching neither body nor ground
     flight_ground_margin_m: float = 0.02  # the object touches the ground when its surface comes this close
+    flight_max_residual_m: float = 0.05  # and its path is no flight when a parabola under gravity misses it by more (RMS)
     seed: int = 0
 
 
@@ -269,6 +270,7 @@ class PhysicsConfig:
     object_ground_m: float = 0.02  # an object point this near the floor can push on it
     object_weight: float = 10.0  # weight of the object's wrench equations against the body's
     flight_min_frames: int = 8  # shortest free flight (object touching neither body nor floor)
+    flight_max_residual_m: float = 0.05  # and a parabola under gravity within this of its path (RMS)
 
 
 @dataclass

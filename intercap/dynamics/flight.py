@@ -12,9 +12,12 @@ times are index / fps. NaN centres (untracked frames) are left out of every fit.
 """
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 G = 9.81  # m/s^2
+log = logging.getLogger(__name__)
 
 
 def _unit(v) -> np.ndarray:
@@ -124,6 +127,28 @@ def fit_flight(centres, episodes, fps: float, up, g: float = G) -> dict:
         out["fixed_fit"][a:b + 1] = every[:, :2] @ lin + every[:, 2:] * gravity
         out["fixed_residual_m"][e] = np.sqrt(np.mean(np.sum((A[:, :2] @ lin + A[:, 2:] * gravity - p) ** 2, 1)))
     return out
+
+
+def falling_episodes(centres, episodes, fps: float, up, max_residual_m: float, g: float = G
+                     ) -> tuple[np.ndarray, list[tuple[int, int, float]]]:
+    """The episodes (E, 2) whose tracked centres follow a parabola under gravity (`fit_flight`'s
+    fixed fit) within `max_residual_m` RMS, and the others as (first, last, residual_m). An object
+    that touches nothing by the contact labels yet does not fall is held by a contact they missed
+    (a cup at the mouth for 3 s, one view: it would have fallen 44 m)."""
+    episodes = np.asarray(episodes, dtype=np.int64).reshape(-1, 2)
+    if not len(episodes):
+        return episodes, []
+    residual = fit_flight(centres, episodes, fps, up, g)["fixed_residual_m"]
+    falls = np.isfinite(residual) & (residual <= max_residual_m)
+    return episodes[falls], [(int(a), int(b), float(r)) for (a, b), r in zip(episodes[~falls], residual[~falls])]
+
+
+def warn_held(held: list[tuple[int, int, float]], stage: str) -> None:
+    """Say which runs `falling_episodes` found held, not flying."""
+    for a, b, residual in held:
+        log.warning("%s: frames %d-%d: the object touches nothing by the contact labels, but does not fall (a "
+                    "parabola under gravity misses its path by %.0f mm RMS): a contact they missed, not a free "
+                    "flight", stage, a, b, 1000 * residual)
 
 
 def gravity_from_flight(centres, episodes, fps: float, g_range=(6.0, 14.0)) -> dict:

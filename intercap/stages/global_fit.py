@@ -45,6 +45,7 @@ import trimesh
 
 from intercap.body_models import BodyParams, shared_model
 from intercap.body_models.base import PARAM_FIELDS, BodyOutput, axis_angle_to_matrix, matrix_to_axis_angle
+from intercap.dynamics.flight import warn_held
 from intercap.energies import losses, optim
 from intercap.energies.motion_prior import MODEL_FPS
 from intercap.energies.optim import minimise
@@ -669,6 +670,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         parts = run_chunks(fit_chunk, chunks, (session.root, cfg, out_dir, None), T, "global", progress)
         shutdown()  # no later stage has chunks: the idle workers' memory (~1 GB each) goes before the outputs'
         problem = GlobalProblem(session, cfg, out_dir)
+    warn_held(problem.flight["held"], "global")
     fitted = BodyParams.from_numpy_dict(
         {name: np.concatenate([p["params"][name] for p in parts]) for name in parts[0]["params"]},
         dtype=problem.model.dtype, device=problem.model.faces.device)
@@ -787,7 +789,7 @@ def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: flo
     Gravity is -9.81 along the ground normal; with no ground plane (prepare found no floor) the up
     direction comes from the flights themselves (`gravity_from_flight`), written to
     OUT/global/gravity.json by the caller's metrics ("gravity_source": "flight")."""
-    from intercap.dynamics.flight import find_flight_episodes, gravity_from_flight, object_on_ground
+    from intercap.dynamics.flight import falling_episodes, find_flight_episodes, gravity_from_flight, object_on_ground
 
     T = len(per_frame.contact)
     centres = per_frame.t + np.einsum("tij,j->ti", per_frame.R, shape.centroid.numpy())
@@ -800,7 +802,10 @@ def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: flo
     else:
         up, source = np.array([0.0, 0.0, 1.0]), "none"  # only to run the detection; replaced below
     episodes = find_flight_episodes(centres, touching, up, fps, g.flight_min_frames)
-    figures = {"flight_episodes": episodes.tolist()}
+    held = []  # runs touching nothing that do not fall (`run` says so, once)
+    if ground is not None:  # with no floor, `gravity_from_flight` checks the episodes against gravity itself
+        episodes, held = falling_episodes(centres, episodes, fps, up, g.flight_max_residual_m)
+    figures = {"flight_episodes": episodes.tolist(), "flight_runs_held": [[a, b] for a, b, _ in held]}
     if ground is None and len(episodes):
         try:
             fit = gravity_from_flight(centres, episodes, fps)
@@ -817,7 +822,7 @@ def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: flo
     for e, (a, b) in enumerate(episodes):
         episode_of_frame[a:b + 1] = e
     figures["flight_frames"] = int((episode_of_frame >= 0).sum())
-    return {"episodes": episodes, "up": up, "episode_of_frame": episode_of_frame, "figures": figures}
+    return {"episodes": episodes, "up": up, "episode_of_frame": episode_of_frame, "figures": figures, "held": held}
 
 
 def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectShape, per_frame: PerFrameResults,

@@ -751,6 +751,7 @@ def run_searches(tracker: ObjectTracker, searches: list) -> list:
 
 TRACKED, REINITIALISED, LOST, UNTRUSTED = 1, 2, 3, 4
 STATUS_NAMES = {0: "pending", TRACKED: "tracked", REINITIALISED: "reinitialised", LOST: "lost", UNTRUSTED: "untrusted"}
+FEW_TRUSTED = 0.5  # the run warns when the object is trusted in fewer than this share of frames
 
 
 def untracked(T: int) -> dict[str, np.ndarray]:
@@ -999,11 +1000,13 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     counts = {STATUS_NAMES[s]: int((state["status"] == s).sum()) for s in (TRACKED, REINITIALISED, LOST, UNTRUSTED)}
     images = session.num_cameras * session.num_frames
     derived = int(session.missing("mask_object").sum()) if tracker.session_masks else images
-    if not valid.any():
-        log.warning("object: the object was trusted in no frame%s", (
-            ": its masks were derived from depth, where an object that stays in place (or a person who"
-            " does, holding it) is part of the background; give the session object masks" if derived else
-            ": check its masks and object.ply (OUT/object/overlays/)"))
+    if valid.mean() < FEW_TRUSTED:
+        log.warning("object: the object was trusted in %s%s", f"only {int(valid.sum())} of {len(valid)} frames"
+                    if valid.any() else "no frame", (
+                        ": its masks were derived from depth, where an object that stays in place (or a person"
+                        " who does, holding it) is part of the background, and one lying flat (a board on the"
+                        " floor) hardly stands out of it; give the session object masks" if derived else
+                        ": check its masks and object.ply (OUT/object/overlays/)"))
     return {
         "masks": "session" if derived == 0 else ("derived" if derived == images else "session+derived"),
         "masks_derived_images": derived,

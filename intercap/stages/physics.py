@@ -326,7 +326,8 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
     object_ground = sol.object_ground_force.sum(1) if object_known else np.full((T, 3), np.nan)
 
     # free flight
-    flight = flight_analysis(centres, contact_labels(out_dir, T) | obj_on_ground, up, fps, pc.flight_min_frames) \
+    flight = flight_analysis(centres, contact_labels(out_dir, T) | obj_on_ground, up, fps, pc.flight_min_frames,
+                             pc.flight_max_residual_m) \
         if has_object else {"episodes": np.zeros((0, 2), np.int64), "acceleration": np.zeros((0, 3)),
                             "gravity_angle_deg": np.zeros(0)}
 
@@ -390,11 +391,13 @@ def contact_labels(out_dir: Path, T: int) -> np.ndarray:
     return labels
 
 
-def flight_analysis(centres, touching, up, fps, min_frames) -> dict:
+def flight_analysis(centres, touching, up, fps, min_frames, max_residual_m) -> dict:
     """Free-flight episodes of the object's centre and their parabola fits (dynamics.flight)."""
-    from intercap.dynamics.flight import find_flight_episodes, fit_flight
+    from intercap.dynamics.flight import falling_episodes, find_flight_episodes, fit_flight, warn_held
 
     episodes = find_flight_episodes(centres, touching, up, fps, min_frames=min_frames)
+    episodes, held = falling_episodes(centres, episodes, fps, up, max_residual_m)
+    warn_held(held, "physics")
     if not len(episodes):
         return {"episodes": np.zeros((0, 2), np.int64), "acceleration": np.zeros((0, 3)), "gravity_angle_deg": np.zeros(0)}
     fit = fit_flight(centres, episodes, fps, up)

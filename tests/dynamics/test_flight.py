@@ -5,7 +5,8 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from intercap.dynamics.flight import find_flight_episodes, fit_flight, gravity_from_flight, object_on_ground
+from intercap.dynamics.flight import (falling_episodes, find_flight_episodes, fit_flight, gravity_from_flight,
+                                      object_on_ground)
 from intercap.energies.losses import flight_parabola
 from intercap.synth.motions import flight_track, get_script
 
@@ -65,6 +66,37 @@ def test_still_untouched_object_and_short_runs_are_not_flights():
     poses, flight, touching = generator_flight("toss")
     touching[flight[0] + 7] = True  # a contact label in the middle: two runs of < 8 frames
     assert len(find_flight_episodes(poses[:, :3, 3], touching, UP, FPS)) == 0
+
+
+def test_an_object_held_where_contact_was_missed_is_no_flight():
+    """A toss falls (kept, 2 mm of tracking noise); a cup lifted to the mouth and held there for 2 s
+    while the contact labels say nothing touches it does not fall: not a flight, and the global
+    stage says so instead of pulling the cup onto a 20 m fall."""
+    import trimesh
+
+    from intercap.config import GlobalConfig
+    from intercap.geometry.ground import GroundPlane
+    from intercap.stages.global_fit import ObjectShape, PerFrameResults, free_flight
+
+    poses, flight, _ = generator_flight("toss")
+    tossed = poses[:, :3, 3] + np.random.default_rng(3).normal(0, 0.002, (len(poses), 3))
+    kept, held = falling_episodes(tossed, [flight], FPS, UP, 0.05)
+    assert kept.tolist() == [list(flight)] and held == []
+
+    T, lift = 90, 20
+    height = np.concatenate([np.linspace(0.9, 1.5, lift), np.full(T - lift, 1.5)])
+    centres = np.stack([0.02 * np.sin(np.arange(T) / 9), np.zeros(T), height], 1)
+    centres += np.random.default_rng(4).normal(0, 0.002, centres.shape)
+    kept, held = falling_episodes(centres, [[lift, T - 1]], FPS, UP, 0.05)
+    assert len(kept) == 0 and held[0][:2] == (lift, T - 1) and held[0][2] > 1.0  # metres off a fall
+
+    contact = np.arange(T) < lift  # the labels lose the hand once the cup is up
+    per_frame = PerFrameResults(None, np.ones(T, bool), np.tile(np.eye(3), (T, 1, 1)), centres, np.ones(T, bool),
+                                np.ones(T), contact, None)
+    shape = ObjectShape(trimesh.creation.cylinder(radius=0.04, height=0.1), 16, None, samples=64)
+    out = free_flight(per_frame, shape, GroundPlane(point=np.zeros(3), normal=UP), FPS, GlobalConfig())
+    assert len(out["episodes"]) == 0 and (out["episode_of_frame"] < 0).all()
+    assert out["figures"]["flight_runs_held"] == [[lift, T - 1]]
 
 
 def test_gravity_from_flight_in_a_tilted_world():

@@ -56,13 +56,11 @@ def test_tracking_with_derived_masks(tmp_path):
     assert np.nanpercentile(add, 90) < 20.0, add
 
 
-def test_object_leaving_the_view_is_marked_not_invented(box_session, tmp_path):
-    """Frames 4-6 lose the object in every view (mask empty, its depth gone): those frames
-    are marked, and tracking picks the object up again afterwards."""
-    session = tmp_path / "session"
+def without_object(box_session, session: Path, frames) -> Path:
+    """A copy of the session whose object is gone in `frames` in every view (mask empty, its depth gone)."""
     shutil.copytree(box_session, session)
     for cam_dir in [p for p in session.iterdir() if (p / "masks" / "object").is_dir()]:
-        for frame in (4, 5, 6):
+        for frame in frames:
             mask_path = cam_dir / "masks" / "object" / f"{frame:06d}.png"
             depth_path = cam_dir / "depth" / f"{frame:06d}.png"
             mask = cv2.imread(str(mask_path), cv2.IMREAD_UNCHANGED) > 127
@@ -70,8 +68,16 @@ def test_object_leaving_the_view_is_marked_not_invented(box_session, tmp_path):
             depth[mask] = 0
             cv2.imwrite(str(depth_path), depth)
             cv2.imwrite(str(mask_path), np.zeros_like(mask, np.uint8))
+    return session
+
+
+def test_object_leaving_the_view_is_marked_not_invented(box_session, tmp_path, caplog):
+    """Frames 4-6 lose the object in every view: those frames are marked, and tracking picks the
+    object up again afterwards. Seven of ten frames trusted: no warning."""
+    session = without_object(box_session, tmp_path / "session", (4, 5, 6))
     out = tmp_path / "out"
     run_pipeline(session, out, load_config(), stages=["object"], progress=False)
+    assert "trusted in only" not in caplog.text
     poses = np.load(out / "object_poses.npz")
     assert set(poses["status"][4:7]) <= {LOST, UNTRUSTED}
     assert np.isnan(poses["t"][4:7]).all() and (poses["confidence"][4:7] == 0).all()
@@ -79,6 +85,14 @@ def test_object_leaving_the_view_is_marked_not_invented(box_session, tmp_path):
     assert poses["valid"][8:].all()  # found again
     add = add_errors(evaluate(out, session))
     assert np.nanmedian(add[7:]) < 20.0, add
+
+
+def test_an_object_found_in_few_frames_is_said_so(box_session, tmp_path, caplog):
+    """The object gone from frame 3 on: the run says in how few frames it was trusted, and what to check."""
+    session = without_object(box_session, tmp_path / "session", range(3, FRAMES))
+    metrics = run_pipeline(session, tmp_path / "out", load_config(), stages=["object"], progress=False)["object"]
+    assert metrics["frames_trusted"] <= 4
+    assert f"trusted in only {metrics['frames_trusted']} of {FRAMES} frames: check its masks" in caplog.text
 
 
 def test_resume_continues_from_checkpoint(box_session, tmp_path):

@@ -901,6 +901,9 @@ def _physics_section(physics: dict, fids: np.ndarray) -> str:
             if "flight_acceleration" in physics:
                 r["|a| m/s²"] = float(np.linalg.norm(physics["flight_acceleration"][k]))
         facts.append("free-flight episodes:" + table(rows))
+    if len(physics.get("flight_runs_held", ())):
+        facts.append("touching nothing by the contact labels, but not falling (a missed contact, not a flight): "
+                     + ", ".join(f"frames {int(a)}-{int(b)}" for a, b in physics["flight_runs_held"]))
     return "".join(parts) + "<p>" + "<br>".join(facts) + "</p>"
 
 

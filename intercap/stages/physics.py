@@ -328,8 +328,7 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
     # free flight
     flight = flight_analysis(centres, contact_labels(out_dir, T) | obj_on_ground, up, fps, pc.flight_min_frames,
                              pc.flight_max_residual_m) \
-        if has_object else {"episodes": np.zeros((0, 2), np.int64), "acceleration": np.zeros((0, 3)),
-                            "gravity_angle_deg": np.zeros(0)}
+        if has_object else no_flight()
 
     arm = track.hands - root[:, None]  # the feet carry the body's needs plus what the hands push on the object
     feet_need = body_wrench.copy()
@@ -344,7 +343,8 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
                   residual_force=sol.body_residual[:, :3], residual_torque=sol.body_residual[:, 3:],
                   object_residual_force=sol.object_residual[:, :3], object_residual_torque=sol.object_residual[:, 3:],
                   valid=valid, flight_episodes=flight["episodes"], flight_acceleration=flight["acceleration"],
-                  flight_gravity_angle_deg=flight["gravity_angle_deg"], foot_contact=foot_active, foot_points=soles,
+                  flight_gravity_angle_deg=flight["gravity_angle_deg"], flight_runs_held=flight["held"],
+                  foot_contact=foot_active, foot_points=soles,
                   hand_contact=np.zeros((T, 2), bool) if hand_active is None else hand_active,
                   mu=np.float64(pc.mu), body_mass_source=np.array(body_source),
                   object_mass_source=np.array(object_source), **per_frame)
@@ -398,10 +398,18 @@ def flight_analysis(centres, touching, up, fps, min_frames, max_residual_m) -> d
     episodes = find_flight_episodes(centres, touching, up, fps, min_frames=min_frames)
     episodes, held = falling_episodes(centres, episodes, fps, up, max_residual_m)
     warn_held(held, "physics")
+    runs_held = np.array([(a, b) for a, b, _ in held], np.int64).reshape(-1, 2)  # touching nothing, not falling
     if not len(episodes):
-        return {"episodes": np.zeros((0, 2), np.int64), "acceleration": np.zeros((0, 3)), "gravity_angle_deg": np.zeros(0)}
+        return {**no_flight(), "held": runs_held}
     fit = fit_flight(centres, episodes, fps, up)
-    return {"episodes": episodes, "acceleration": fit["acceleration"], "gravity_angle_deg": fit["gravity_angle_deg"]}
+    return {"episodes": episodes, "acceleration": fit["acceleration"], "gravity_angle_deg": fit["gravity_angle_deg"],
+            "held": runs_held}
+
+
+def no_flight() -> dict:
+    """`flight_analysis`'s result without an episode."""
+    return {"episodes": np.zeros((0, 2), np.int64), "acceleration": np.zeros((0, 3)), "gravity_angle_deg": np.zeros(0),
+            "held": np.zeros((0, 2), np.int64)}
 
 
 def plausibility_arrays(feet_need, root, soles, foot_active, up, pc, fps, lowest, point, obj_points,

@@ -98,6 +98,9 @@ class ObjectConfig:
     energy_window: int = 30  # frames whose E_O (the last 5 with a fit) set that median
     confirm_ratio: float = 0.9  # a search ending above this times the tracked E_O confirms it as the new level
     coast_frames: int = 15  # after losing track, fit from the last trusted pose for this many frames
+    # a symmetric object's pose keeps its last trusted turn about its symmetry (else a spin, invisible
+    # to E_O, lives on in the constant-velocity prediction: a cup turned 67-178 degrees per frame)
+    hold_symmetric_turn: bool = True
     background_frames: int = 30
     background_valid_fraction: float = 0.3  # pixels measured in fewer of those frames have no background (dark floors lose ~40%)
     bridge_fraction: float = 0.006  # derived masks: join object fragments this far apart (fraction of image width)

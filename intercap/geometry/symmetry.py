@@ -120,6 +120,28 @@ def detect_symmetry(mesh: trimesh.Trimesh, n_samples: int = 2000, seed: int = 0,
     return ObjectSymmetry(rotations, continuous, desc)
 
 
+def nearest_equivalent_rotation(R, reference, sym: ObjectSymmetry) -> np.ndarray:
+    """Of the rotations R S that look the same (S in the object's symmetry: the finite group, each
+    followed by the best turn about a continuous axis), the one nearest to `reference` (3, 3).
+    A tracker that keeps the free part as it was does not spin a symmetric object: a cup's
+    constant-velocity prediction had kept up a 67-178 degree per frame spin about its axis."""
+    R, reference = np.asarray(R, np.float64), np.asarray(reference, np.float64)
+    if len(sym.continuous_axes) >= 2:  # sphere-like: every orientation is the same
+        return reference.copy()
+    best, best_angle = R, np.inf
+    for S in sym.rotations:
+        candidate = R @ S
+        if sym.continuous_axes:  # the turn about a maximising trace(Q^T Rot(a, theta)), Q = candidate^T reference
+            a = np.asarray(sym.continuous_axes[0], np.float64)
+            Q = candidate.T @ reference
+            w = np.array([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])
+            candidate = candidate @ axis_angle_matrix(a, math.atan2(a @ w, np.trace(Q) - a @ Q @ a))
+        angle = float(rotation_angle_deg(candidate, reference))
+        if angle < best_angle:
+            best, best_angle = candidate, angle
+    return best
+
+
 def symmetric_rotation_error_deg(R_est, R_gt, sym: ObjectSymmetry):
     """Rotation error (T,) in degrees minimised over the object's symmetry group.
 

@@ -70,7 +70,7 @@ from intercap.geometry.segmentation import (
     foreground_mask,
     uncertain_mask,
 )
-from intercap.geometry.symmetry import axis_angle_matrix
+from intercap.geometry.symmetry import axis_angle_matrix, detect_symmetry, nearest_equivalent_rotation, surface_moments
 from intercap.io.files import publish, save_npz
 from intercap.parallel import Chunk, chunk_groups, lockstep, run_chunks
 from intercap.session.session import in_threads
@@ -223,6 +223,7 @@ class ObjectTracker:
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
+        self._mesh, self._symmetry = mesh, None  # (`ObjectSymmetry` or None when none, its centre): `symmetry`
 
     # -- observations ---------------------------------------------------------------
     def _background(self) -> list[np.ndarray]:
@@ -363,6 +364,23 @@ class ObjectTracker:
 
     def _from_centre(self, R, t_c) -> np.ndarray:
         return np.asarray(t_c) - np.asarray(R) @ self.centroid
+
+    def symmetry(self):
+        """The mesh's rotational symmetry (None: none) and the surface centroid its axes pass through."""
+        if self._symmetry is None:
+            vertices, faces = np.asarray(self._mesh.vertices, np.float64), np.asarray(self._mesh.faces)
+            found = detect_symmetry(self._mesh)
+            symmetric = len(found.rotations) > 1 or bool(found.continuous_axes)
+            self._symmetry = (found if symmetric else None, surface_moments(vertices, faces)[0])
+        return self._symmetry
+
+    def turned_like(self, R, t, reference_R):
+        """The pose that looks as (R, t) does (the object's symmetry) whose rotation is nearest `reference_R`."""
+        found, centre = self.symmetry()
+        if found is None:
+            return R, t
+        nearest = nearest_equivalent_rotation(R, reference_R, found)
+        return nearest, np.asarray(t) + np.asarray(R) @ centre - nearest @ centre
 
     # -- fitting -------------------------------------------------------------------------------
     def crops_for(self, poses: list[tuple[Observation, np.ndarray, np.ndarray]]) -> torch.Tensor:
@@ -858,12 +876,17 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path 
         if fit is not None:
             state["energy"][i] = fit.energy
             state["confidence"][i] = fit.confidence if trusted else 0.0
+        pose = None
         if trusted:
-            state["R"][i], state["t"][i] = fit.R, fit.t
+            pose = (fit.R, fit.t)
+            last = next((h for h in reversed(history) if h is not None), None)
+            if last is not None and cfg.hold_symmetric_turn:
+                pose = tracker.turned_like(*pose, last[0])
+            state["R"][i], state["t"][i] = pose
             state["status"][i] = status
         else:
             state["status"][i] = UNTRUSTED if fit is not None else LOST
-        history.append((fit.R, fit.t) if trusted else None)
+        history.append(pose)
         done = until is not None and until(i, state)
         if checkpoint is not None and ((i + 1) % cfg.checkpoint_every == 0 or i + 1 == T or done):
             save_npz(checkpoint, next=i + 1, **state)
@@ -991,6 +1014,12 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     starts = [chunk.lo for group in groups for chunk in group][1:]
     state, retracked = join_seams(tracker, session.frame_ids, state, starts, stage_dir) if starts else (state, 0)
     valid = np.isin(state["status"], (TRACKED, REINITIALISED))
+    if ocfg.hold_symmetric_turn:  # across the seams too: each chunk began with its own turn
+        last = None
+        for i in np.flatnonzero(valid):
+            if last is not None:
+                state["R"][i], state["t"][i] = tracker.turned_like(state["R"][i], state["t"][i], last)
+            last = state["R"][i]
     save_npz(stage_dir / "object_poses.npz", R=state["R"], t=state["t"], confidence=state["confidence"],
              valid=valid, status=state["status"], frame_ids=session.frame_ids)
     publish(stage_dir / "object_poses.npz", Path(out_dir) / "object_poses.npz")

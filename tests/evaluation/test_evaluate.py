@@ -12,7 +12,7 @@ import yaml
 from intercap.evaluation.evaluate import EvalResult, evaluate
 from intercap.evaluation.table import format_table, write_json
 from intercap.geometry.surfaces import TriangleSurface
-from intercap.geometry.symmetry import axis_angle_matrix, detect_symmetry
+from intercap.geometry.symmetry import axis_angle_matrix, detect_symmetry, rotation_angle_deg
 
 FPS = 30.0
 BOX = (0.2, 0.3, 0.1)  # x, y, z extents (m); box centred on the object origin
@@ -153,6 +153,25 @@ def test_symmetry_detection_on_box_cylinder_and_irregular_mesh():
     cyl = detect_symmetry(trimesh.creation.cylinder(radius=0.04, height=0.2, sections=32))
     assert len(cyl.continuous_axes) == 1 and abs(cyl.continuous_axes[0][2]) == pytest.approx(1.0)
     assert not detect_symmetry(irregular_mesh()).is_symmetric
+
+
+def test_the_nearest_equivalent_rotation_takes_out_the_free_turn_only():
+    """A cylinder turned about its axis and a box flipped 180 degrees look as before: the nearest
+    equivalent rotation to the unturned pose is that pose; a tilt stays, and an asymmetric object keeps its own."""
+    from intercap.geometry.symmetry import nearest_equivalent_rotation
+
+    reference = axis_angle_matrix([0.3, -0.5, 0.8], 0.9)
+    cylinder = detect_symmetry(trimesh.creation.cylinder(radius=0.05, height=0.2, sections=64))
+    spun = reference @ axis_angle_matrix([0, 0, 1], math.radians(137))
+    np.testing.assert_allclose(nearest_equivalent_rotation(spun, reference, cylinder), reference, atol=1e-9)
+    tilted = spun @ axis_angle_matrix([1, 0, 0], math.radians(10))
+    kept = nearest_equivalent_rotation(tilted, reference, cylinder)
+    assert abs(rotation_angle_deg(kept, reference) - 10.0) < 1e-6  # the tilt is not a symmetry
+    box = detect_symmetry(box_mesh())
+    flipped = reference @ axis_angle_matrix([0, 1, 0], math.pi) @ axis_angle_matrix([0, 0, 1], math.radians(3))
+    assert rotation_angle_deg(nearest_equivalent_rotation(flipped, reference, box), reference) == pytest.approx(3.0)
+    asymmetric = detect_symmetry(irregular_mesh())
+    np.testing.assert_allclose(nearest_equivalent_rotation(flipped, reference, asymmetric), flipped)  # nothing free
 
 
 def test_cylinder_spin_is_free_but_tilt_is_not(tmp_path):

@@ -60,37 +60,35 @@ def contact_scores(pred, gt):
     return acc, prec, rec
 
 
-def penetration_depths(body_vertices, R, t, object_surface: TriangleSurface):
-    """Per-frame maximum depth (T,), metres, of body vertices inside the posed object (0 if none).
+def nearest_signed_distance(body_vertices, R, t, object_surface: TriangleSurface, margin_m: float = 0.0):
+    """Per-frame smallest signed distance (T,), metres, from body vertices to the posed object's
+    surface (negative inside), over the vertices within `margin_m` of the object's bounding box;
+    inf where none is.
 
-    Body vertices (T, V, 3) are moved into object coordinates with the inverse
-    of each frame's pose R (T, 3, 3), t (T, 3), so one prepared object surface
-    serves all frames; only vertices inside the object's bounding box are
-    tested. Depth is the distance to the object surface of a vertex whose
-    signed distance is negative.
-    """
-    lo, hi = object_surface.vertices.min(0), object_surface.vertices.max(0)
-    depth = np.zeros(len(R))
+    Body vertices (T, V, 3) are moved into object coordinates with the inverse of each frame's
+    pose R (T, 3, 3), t (T, 3), so one prepared object surface serves all frames."""
+    lo, hi = object_surface.vertices.min(0) - margin_m, object_surface.vertices.max(0) + margin_m
+    nearest = np.full(len(R), np.inf)
     for s in range(len(R)):  # one frame at a time bounds memory at (V, 3)
         local = (np.asarray(body_vertices[s], np.float64) - t[s]) @ R[s]  # R^T (x - t)
         near = np.all((local >= lo) & (local <= hi), axis=1)
         if near.any():
-            sd = object_surface.signed_distance(local[near])
-            depth[s] = max(0.0, float(-sd.min()))
-    return depth
+            nearest[s] = float(object_surface.signed_distance(local[near]).min())
+    return nearest
+
+
+def penetration_depths(body_vertices, R, t, object_surface: TriangleSurface):
+    """Per-frame maximum depth (T,), metres, of body vertices inside the posed object (0 if none):
+    the distance to the object surface of the deepest vertex whose signed distance is negative
+    (`nearest_signed_distance`; only vertices inside the object's bounding box can be)."""
+    return np.maximum(0.0, -nearest_signed_distance(body_vertices, R, t, object_surface))
 
 
 def touching_frames(body_vertices, R, t, object_surface: TriangleSurface, distance_m: float = 0.005):
     """(T,) bool: some body vertex lies within `distance_m` of the posed object's surface, or inside
-    it. Geometry's contact, where a session's contact labels are its script's grasp phases (hands
-    touch a moment before a grasp begins and after it ends). Frames as `penetration_depths` does."""
-    lo, hi = object_surface.vertices.min(0) - distance_m, object_surface.vertices.max(0) + distance_m
-    touching = np.zeros(len(R), bool)
-    for s in range(len(R)):
-        local = (np.asarray(body_vertices[s], np.float64) - t[s]) @ R[s]
-        near = np.all((local >= lo) & (local <= hi), axis=1)
-        touching[s] = near.any() and float(object_surface.signed_distance(local[near]).min()) < distance_m
-    return touching
+    it (`nearest_signed_distance`). Geometry's contact, where a session's contact labels are its
+    script's grasp phases (hands touch a moment before a grasp begins and after it ends)."""
+    return nearest_signed_distance(body_vertices, R, t, object_surface, distance_m) < distance_m
 
 
 def vertex_jitter(vertices, fps: float, chunk: int = 128):

@@ -120,26 +120,54 @@ def detect_symmetry(mesh: trimesh.Trimesh, n_samples: int = 2000, seed: int = 0,
     return ObjectSymmetry(rotations, continuous, desc)
 
 
+def mesh_symmetry(mesh: trimesh.Trimesh) -> tuple[ObjectSymmetry, np.ndarray]:
+    """The mesh's rotational symmetry and the surface centroid (3,) its axes pass through."""
+    centre, _ = surface_moments(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces))
+    return detect_symmetry(mesh), centre
+
+
 def nearest_equivalent_rotation(R, reference, sym: ObjectSymmetry) -> np.ndarray:
-    """Of the rotations R S that look the same (S in the object's symmetry: the finite group, each
-    followed by the best turn about a continuous axis), the one nearest to `reference` (3, 3).
-    A tracker that keeps the free part as it was does not spin a symmetric object: a cup's
-    constant-velocity prediction had kept up a 67-178 degree per frame spin about its axis."""
+    """Of the rotations R S that look the same (S in the object's symmetry: each element of the
+    finite group, followed by the best turn about a continuous axis), the one nearest to
+    `reference` (3, 3). The turn about axis a maximises trace(Q^T Rot(a, angle)), Q = (R S)^T reference."""
     R, reference = np.asarray(R, np.float64), np.asarray(reference, np.float64)
     if len(sym.continuous_axes) >= 2:  # sphere-like: every orientation is the same
         return reference.copy()
     best, best_angle = R, np.inf
     for S in sym.rotations:
         candidate = R @ S
-        if sym.continuous_axes:  # the turn about a maximising trace(Q^T Rot(a, theta)), Q = candidate^T reference
+        if sym.continuous_axes:
             a = np.asarray(sym.continuous_axes[0], np.float64)
             Q = candidate.T @ reference
-            w = np.array([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])
+            w = np.array([Q[2, 1] - Q[1, 2], Q[0, 2] - Q[2, 0], Q[1, 0] - Q[0, 1]])  # trace([a]x^T Q) = a . w
             candidate = candidate @ axis_angle_matrix(a, math.atan2(a @ w, np.trace(Q) - a @ Q @ a))
         angle = float(rotation_angle_deg(candidate, reference))
         if angle < best_angle:
             best, best_angle = candidate, angle
     return best
+
+
+def equivalent_pose(R, t, reference, sym: ObjectSymmetry, centre: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The object->world pose that looks as (R, t) does, its rotation nearest `reference`
+    (`nearest_equivalent_rotation`; the symmetry's axes pass through `centre`)."""
+    nearest = nearest_equivalent_rotation(R, reference, sym)
+    return nearest, np.asarray(t, np.float64) + np.asarray(R, np.float64) @ centre - nearest @ centre
+
+
+def unwrap_symmetry(R: np.ndarray, t: np.ndarray, valid: np.ndarray, sym: ObjectSymmetry, centre: np.ndarray):
+    """Per-frame poses (T, 3, 3), (T, 3) of a symmetric object, each valid one replaced by its
+    look-alike nearest in rotation to the previous valid frame's (`equivalent_pose`): a tracker may
+    pick any of them frame by frame, and nothing downstream should see a box turn 180 degrees
+    between frames or a cup spin about its axis. Unchanged (the same arrays) when not symmetric."""
+    if not sym.is_symmetric:
+        return R, t
+    R, t = np.array(R, np.float64), np.array(t, np.float64)
+    previous = None
+    for i in np.flatnonzero(valid):
+        if previous is not None:
+            R[i], t[i] = equivalent_pose(R[i], t[i], previous, sym, centre)
+        previous = R[i]
+    return R, t
 
 
 def symmetric_rotation_error_deg(R_est, R_gt, sym: ObjectSymmetry):

@@ -50,6 +50,7 @@ from intercap.energies import losses, optim
 from intercap.energies.motion_prior import MODEL_FPS
 from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras
+from intercap.geometry.symmetry import mesh_symmetry, unwrap_symmetry
 from intercap.io.files import per_frame_result, publish, save_npz, write_json
 from intercap.parallel import Chunk, frame_chunks, on_gpu, run_chunks, shutdown, worker_count
 from intercap.session.session import in_threads
@@ -133,7 +134,7 @@ def load_per_frame(session, out_dir: Path, model) -> PerFrameResults:
         object_valid &= ~np.load(inside)
     if not object_valid.any():
         raise GlobalError(f"{object_file}: the object was tracked in no frame; nothing to refine")
-    R, t = unwrap_symmetry(poses["R"], poses["t"], object_valid, session.object.load_mesh())
+    R, t = unwrap_symmetry(poses["R"], poses["t"], object_valid, *mesh_symmetry(session.object.load_mesh()))
     rotvec = fill_gaps(_rotvecs(R, object_valid), object_valid)
     R = axis_angle_to_matrix(torch.from_numpy(rotvec)).numpy()
     t = fill_gaps(t, object_valid)
@@ -157,33 +158,6 @@ def hand_object_distance(model, per_frame: PerFrameResults, shape: "ObjectShape"
             distance[sl, 0] = sd[:, :len(ids[0])].min(1).values.cpu().numpy()
             distance[sl, 1] = sd[:, len(ids[0]):].min(1).values.cpu().numpy()
     return distance
-
-
-def unwrap_symmetry(R: np.ndarray, t: np.ndarray, valid: np.ndarray, mesh: trimesh.Trimesh):
-    """Per-frame poses of a symmetric object, each replaced by its look-alike (R S, moved so the
-    surface looks the same) nearest in rotation to the previous frame's: the tracker may pick any of
-    them frame by frame, and E_A / the anchor must not see a box turn 180 degrees between frames."""
-    from intercap.geometry.symmetry import axis_angle_matrix, detect_symmetry, surface_moments
-
-    symmetry = detect_symmetry(mesh)
-    if not symmetry.is_symmetric:
-        return R, t
-    centre, _ = surface_moments(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces))
-    R, t = np.array(R, np.float64), np.array(t, np.float64)
-    previous = None
-    for i in np.flatnonzero(valid):
-        if previous is not None:
-            S = symmetry.rotations[np.argmax(np.einsum("gij,ij->g", R[i] @ symmetry.rotations, previous))]
-            if symmetry.continuous_axes:  # then the angle about the axis nearest to previous
-                a = np.asarray(symmetry.continuous_axes[0], np.float64)
-                Q = (R[i] @ S).T @ previous
-                skew = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
-                angle = np.arctan2(np.trace(skew.T @ Q), np.trace(Q) - a @ Q @ a)
-                S = S @ axis_angle_matrix(a, angle)
-            t[i] = t[i] + R[i] @ (centre - S @ centre)
-            R[i] = R[i] @ S
-        previous = R[i]
-    return R, t
 
 
 def _rotvecs(R: np.ndarray, valid: np.ndarray) -> np.ndarray:

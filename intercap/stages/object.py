@@ -70,7 +70,7 @@ from intercap.geometry.segmentation import (
     foreground_mask,
     uncertain_mask,
 )
-from intercap.geometry.symmetry import axis_angle_matrix, detect_symmetry, nearest_equivalent_rotation, surface_moments
+from intercap.geometry.symmetry import axis_angle_matrix, equivalent_pose, mesh_symmetry, unwrap_symmetry
 from intercap.io.files import publish, save_npz
 from intercap.parallel import Chunk, chunk_groups, lockstep, run_chunks
 from intercap.session.session import in_threads
@@ -223,7 +223,7 @@ class ObjectTracker:
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
-        self._mesh, self._symmetry = mesh, None  # (`ObjectSymmetry` or None when none, its centre): `symmetry`
+        self._mesh, self._symmetry = mesh, None  # `symmetry`'s, found when first asked
 
     # -- observations ---------------------------------------------------------------
     def _background(self) -> list[np.ndarray]:
@@ -366,21 +366,15 @@ class ObjectTracker:
         return np.asarray(t_c) - np.asarray(R) @ self.centroid
 
     def symmetry(self):
-        """The mesh's rotational symmetry (None: none) and the surface centroid its axes pass through."""
+        """The mesh's rotational symmetry and the centre its axes pass through (`mesh_symmetry`)."""
         if self._symmetry is None:
-            vertices, faces = np.asarray(self._mesh.vertices, np.float64), np.asarray(self._mesh.faces)
-            found = detect_symmetry(self._mesh)
-            symmetric = len(found.rotations) > 1 or bool(found.continuous_axes)
-            self._symmetry = (found if symmetric else None, surface_moments(vertices, faces)[0])
+            self._symmetry = mesh_symmetry(self._mesh)
         return self._symmetry
 
     def turned_like(self, R, t, reference_R):
         """The pose that looks as (R, t) does (the object's symmetry) whose rotation is nearest `reference_R`."""
         found, centre = self.symmetry()
-        if found is None:
-            return R, t
-        nearest = nearest_equivalent_rotation(R, reference_R, found)
-        return nearest, np.asarray(t) + np.asarray(R) @ centre - nearest @ centre
+        return equivalent_pose(R, t, reference_R, found, centre) if found.is_symmetric else (R, t)
 
     # -- fitting -------------------------------------------------------------------------------
     def crops_for(self, poses: list[tuple[Observation, np.ndarray, np.ndarray]]) -> torch.Tensor:
@@ -1015,11 +1009,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     state, retracked = join_seams(tracker, session.frame_ids, state, starts, stage_dir) if starts else (state, 0)
     valid = np.isin(state["status"], (TRACKED, REINITIALISED))
     if ocfg.hold_symmetric_turn:  # across the seams too: each chunk began with its own turn
-        last = None
-        for i in np.flatnonzero(valid):
-            if last is not None:
-                state["R"][i], state["t"][i] = tracker.turned_like(state["R"][i], state["t"][i], last)
-            last = state["R"][i]
+        state["R"], state["t"] = unwrap_symmetry(state["R"], state["t"], valid, *tracker.symmetry())
     save_npz(stage_dir / "object_poses.npz", R=state["R"], t=state["t"], confidence=state["confidence"],
              valid=valid, status=state["status"], frame_ids=session.frame_ids)
     publish(stage_dir / "object_poses.npz", Path(out_dir) / "object_poses.npz")

@@ -285,14 +285,14 @@ def test_symmetric_look_alikes_are_unwrapped(sample):
     poses = np.load(GT / "object_poses.npz")
     R, t = poses["R"].astype(np.float64), poses["t"].astype(np.float64)
     mesh = sample.object.load_mesh()
-    from intercap.geometry.symmetry import detect_symmetry, surface_moments
+    from intercap.geometry.symmetry import detect_symmetry, mesh_symmetry, surface_moments, unwrap_symmetry
 
     flip = detect_symmetry(mesh).rotations[1]
     centre, _ = surface_moments(np.asarray(mesh.vertices, np.float64), np.asarray(mesh.faces))
     R_flipped, t_flipped = R.copy(), t.copy()
     R_flipped[1::2] = R[1::2] @ flip
     t_flipped[1::2] = t[1::2] + np.einsum("tij,j->ti", R[1::2], centre - flip @ centre)
-    R_un, t_un = global_fit.unwrap_symmetry(R_flipped, t_flipped, np.ones(len(R), bool), mesh)
+    R_un, t_un = unwrap_symmetry(R_flipped, t_flipped, np.ones(len(R), bool), *mesh_symmetry(mesh))
     assert np.abs(R_un - R).max() < 1e-6 and np.abs(t_un - t).max() < 1e-6
 
 

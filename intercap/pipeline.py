@@ -11,6 +11,7 @@ one that is not built yet is an error, never a fake output.
 from __future__ import annotations
 
 import hashlib
+import importlib
 import json
 import logging
 import shutil
@@ -40,63 +41,24 @@ class Stage:
     config_sections: tuple[str, ...]  # the config sections whose change invalidates the output
 
 
-def _run_prepare(session, cfg, out_dir, progress):
-    from intercap.stages import prepare
+def _stage_runner(module: str) -> Callable:
+    """Stage.run of `intercap.stages.<module>`, imported only when the stage runs (a run of some
+    stages does not import the others)."""
+    def run(session, cfg, out_dir, progress):
+        return importlib.import_module(f"intercap.stages.{module}").run(session, cfg, out_dir, progress=progress)
 
-    return prepare.run(session, cfg, out_dir, progress=progress)
-
-
-def _run_object(session, cfg, out_dir, progress):
-    from intercap.stages import object as object_stage
-
-    return object_stage.run(session, cfg, out_dir, progress=progress)
-
-
-def _run_detect(session, cfg, out_dir, progress):
-    from intercap.stages import detect
-
-    return detect.run(session, cfg, out_dir, progress=progress)
-
-
-def _run_body(session, cfg, out_dir, progress):
-    from intercap.stages import body
-
-    return body.run(session, cfg, out_dir, progress=progress)
-
-
-def _run_global(session, cfg, out_dir, progress):
-    from intercap.stages import global_fit
-
-    return global_fit.run(session, cfg, out_dir, progress=progress)
-
-
-def _run_physics(session, cfg, out_dir, progress):
-    from intercap.stages import physics
-
-    return physics.run(session, cfg, out_dir, progress=progress)
-
-
-def _run_contact(session, cfg, out_dir, progress):
-    from intercap.stages import contact
-
-    return contact.run(session, cfg, out_dir, progress=progress)
-
-
-def _run_export(session, cfg, out_dir, progress):
-    from intercap.stages import export
-
-    return export.run(session, cfg, out_dir, progress=progress)
+    return run
 
 
 STAGES: dict[str, Stage] = {
-    "prepare": Stage("prepare", _run_prepare, ("prepare",)),
-    "detect": Stage("detect", _run_detect, ("detect",)),
-    "object": Stage("object", _run_object, ("object",)),
-    "body": Stage("body", _run_body, ("detect", "body")),
-    "contact": Stage("contact", _run_contact, ("contact",)),
-    "global": Stage("global", _run_global, ("body", "global_")),
-    "physics": Stage("physics", _run_physics, ("physics",)),
-    "export": Stage("export", _run_export, ("export",)),
+    "prepare": Stage("prepare", _stage_runner("prepare"), ("prepare",)),
+    "detect": Stage("detect", _stage_runner("detect"), ("detect",)),
+    "object": Stage("object", _stage_runner("object"), ("object",)),
+    "body": Stage("body", _stage_runner("body"), ("detect", "body")),
+    "contact": Stage("contact", _stage_runner("contact"), ("contact",)),
+    "global": Stage("global", _stage_runner("global_fit"), ("body", "global_")),
+    "physics": Stage("physics", _stage_runner("physics"), ("physics",)),
+    "export": Stage("export", _stage_runner("export"), ("export",)),
 }
 
 

@@ -255,6 +255,10 @@ class ContactConfig:
     overlap_views: int = 3  # T_frame: a frame is in contact when more than this many views count (3: all of 4)
     region_margin_m: float = 0.05  # annotated / 2D contact frames: regions this close also touch (besides the nearest)
     clean_frames: int = 0  # detected labels: fill gaps and drop runs shorter than this many frames; 0 = off
+    # detected labels: an object that touches nothing and the floor but does not fall is held (`held_frames`;
+    # the global stage's flight_* settings decide a fall), by the regions that held it next to the run
+    held: bool = True
+    held_rest_m: float = 0.015  # ... until it comes to rest: its centre this near where it lies at the run's end
 
 
 @dataclass

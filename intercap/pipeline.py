@@ -55,7 +55,7 @@ STAGES: dict[str, Stage] = {
     "detect": Stage("detect", _stage_runner("detect"), ("detect",)),
     "object": Stage("object", _stage_runner("object"), ("object",)),
     "body": Stage("body", _stage_runner("body"), ("detect", "body")),
-    "contact": Stage("contact", _stage_runner("contact"), ("contact",)),
+    "contact": Stage("contact", _stage_runner("contact"), ("contact", "global_")),  # global_: flight_*
     "global": Stage("global", _stage_runner("global_fit"), ("body", "global_")),
     "physics": Stage("physics", _stage_runner("physics"), ("physics",)),
     "export": Stage("export", _stage_runner("export"), ("export",)),

@@ -15,6 +15,10 @@ Three sources, each a small function:
   (`region_distances`, all frames in one open3d call); contact when a region of
   `contact.regions` (both hands by default) is nearer than T_d.
 
+Detected labels miss a contact where the fit's hand is off the object (one or two views
+cannot place a hand along their rays); an object that then touches nothing and the floor
+and does not fall is held (`held_frames`), by the regions that held it next to the run.
+
 Frames whose needed per-frame result is missing (NaN body or object pose) count as
 no contact and are listed. Detected labels can be cleaned in time (`clean_labels`:
 gaps and runs shorter than `contact.clean_frames` are filled / dropped).
@@ -24,7 +28,8 @@ contact (T,), method, frame_ids (T,), region_names (R,), region_distance_m (T, R
 (NaN where unknown), region_contact (T, R) (which regions touch in each contact
 frame: for 3D those nearer than T_d; for annotated and 2D labels the nearest
 region of `contact.regions` and every region within `region_margin_m`),
-invalid (T,) (frames the method could not judge), and each source's labels
+invalid (T,) (frames the method could not judge), held (T,) (contact frames `held_frames`
+added), and each source's labels
 (annotated, overlap_2d, distance_3d) with the 2D overlap counts (T, C).
 For the report: region_vertex_ids (concatenated, int32) with region_sizes (R,), and the
 body model's rest_vertices (V, 3) (the contact heat map is drawn on them).
@@ -141,6 +146,48 @@ def touching_regions(contact: np.ndarray, distance: np.ndarray, columns: list[in
     nearest = np.asarray(columns)[np.argmin(d[:, columns], 1)]
     touching[np.flatnonzero(known), nearest[known]] = True
     return touching & np.asarray(contact, bool)[:, None]
+
+
+def held_frames(contact: np.ndarray, regions: np.ndarray, centres: np.ndarray, on_ground: np.ndarray, up,
+                fps: float, min_frames: int, max_residual_m: float, rest_m: float
+                ) -> tuple[np.ndarray, np.ndarray, list[tuple[int, int]]]:
+    """Frames where the object must be held though no region was seen touching it: it touches neither
+    the body (`contact` (T,)) nor the floor (`on_ground` (T,)) for `min_frames` or more, moves, and does
+    not fall (`dynamics.flight.falling_episodes`: a parabola under gravity misses its centres (T, 3) by
+    more than `max_residual_m` RMS). Whoever held it before the run (the `regions` (T, R) touching in the
+    contact frame just before) holds it until it comes to rest where it stays (its centre within `rest_m`
+    of where the run ends); whoever takes it after the run held it since it left where it lay. One view
+    cannot place a hand along its rays: a cup at the mouth, its hand 13 cm behind it, touched nothing
+    by distance for 2 s. Returns held (T,) bool, the regions holding (T, R) bool, and the runs (first, last)."""
+    from intercap.dynamics.flight import falling_episodes, find_flight_episodes
+
+    T = len(contact)
+    held, holding, runs = np.zeros(T, bool), np.zeros(regions.shape, bool), []
+    episodes = find_flight_episodes(centres, contact | on_ground, up, fps, min_frames)
+    _, unfallen = falling_episodes(centres, episodes, fps, up, max_residual_m)
+    tracked = np.isfinite(centres).all(1)
+
+    def rest(first: int, last: int, anchor: int, backwards: bool) -> int:
+        """The first frame, walking in from `anchor`, whose centre is `rest_m` or more from the anchor's."""
+        steps = range(last, first - 1, -1) if backwards else range(first, last + 1)
+        for k in steps:
+            if tracked[k] and np.linalg.norm(centres[k] - centres[anchor]) >= rest_m:
+                return k
+        return anchor
+
+    for a, b, _ in unfallen:
+        before = regions[a - 1] if a > 0 and contact[a - 1] else np.zeros(regions.shape[1], bool)
+        after = regions[b + 1] if b + 1 < T and contact[b + 1] else np.zeros(regions.shape[1], bool)
+        if not (before.any() or after.any()):
+            continue  # nobody to give it to: `global` and `physics` say so
+        first = a if before.any() else rest(a, b, a, backwards=False)
+        last = b if after.any() else rest(a, b, b, backwards=True)
+        if last < first:
+            continue
+        held[first:last + 1] = True
+        holding[first:last + 1] = before | after
+        runs.append((int(first), int(last)))
+    return held, holding, runs
 
 
 # -- inputs -----------------------------------------------------------------------------------
@@ -339,9 +386,19 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         contact, invalid = clean_labels(raw & judged, clean_frames), ~judged
     margin = ccfg.distance_m if method == "3d" else ccfg.region_margin_m
     touching = touching_regions(contact, distance, columns, margin)
+    held, held_runs = np.zeros(T, bool), []
+    # detected labels only (annotations are the user's word); the floor gives gravity's direction
+    if method != "annotated" and ccfg.held and (out_dir / "prepare" / "ground.json").exists():
+        held, holding, held_runs = object_held(session, cfg, per_frame, mesh, contact, touching, out_dir)
+        contact = contact | held
+        touching |= holding
+        for first, last in held_runs:
+            log.info("contact: frames %d-%d: the object touches nothing but does not fall: held by the region that "
+                     "held it next to them", first, last)
 
     save_npz(stage_dir / "contact.npz", contact=contact, method=np.array(method), frame_ids=frame_ids,
              region_names=np.array(names), region_distance_m=distance, region_contact=touching, invalid=invalid,
+             held=held,
              overlap_2d=overlap_2d & judged_2d, distance_3d=distance_3d & judged_3d, overlap_px=counts,
              mask_source=np.array(mask_source), region_vertex_ids=np.concatenate(ids).astype(np.int32),
              region_sizes=np.array([len(i) for i in ids], np.int32),
@@ -360,6 +417,8 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         "invalid_frame_ids": frame_ids[invalid].tolist(),
         "mask_source": mask_source,
         "region_frames": {n: int(touching[:, k].sum()) for k, n in enumerate(names) if touching[:, k].any()},
+        "held_frames": int(held.sum()),
+        "held_runs": [list(r) for r in held_runs],
     }
     gt = session.ground_truth()
     if gt is not None and gt.contact is not None:  # synthetic / annotated sessions: say how good each source is
@@ -368,6 +427,25 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         for name, labels in (("2d", overlap_2d & judged_2d), ("3d", distance_3d & judged_3d), *extra.items()):
             figures[f"gt_accuracy_{name}_pct"] = contact_scores(labels, gt.contact)[0]
     return figures
+
+
+def object_held(session, cfg, per_frame, mesh, contact: np.ndarray, touching: np.ndarray, out_dir: Path):
+    """`held_frames` on the per-frame object track, with the floor prepare found and the free-flight
+    settings of the global stage (`global.flight_*`: the same test that keeps a flight a flight)."""
+    from intercap.dynamics.flight import object_on_ground
+    from intercap.stages.prepare import load_ground
+
+    g = cfg.global_
+    plane = load_ground(out_dir)
+    vertices = np.asarray(mesh.vertices, np.float64)
+    valid = per_frame.object_valid
+    R, t = np.nan_to_num(per_frame.R), np.nan_to_num(per_frame.t)
+    centres = np.where(valid[:, None], t + R @ vertices.mean(0), np.nan)
+    samples = vertices[np.random.default_rng(0).choice(len(vertices), min(len(vertices), 256), replace=False)]
+    points = np.where(valid[:, None, None], np.einsum("tij,mj->tmi", R, samples) + t[:, None], np.nan)
+    on_ground = object_on_ground(points, plane.point, plane.normal, g.flight_ground_margin_m)
+    return held_frames(contact, touching, centres, on_ground, np.asarray(plane.normal, np.float64), session.fps,
+                       g.flight_min_frames, g.flight_max_residual_m, cfg.contact.held_rest_m)
 
 
 def load_contact(out_dir) -> dict:

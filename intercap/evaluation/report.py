@@ -754,6 +754,8 @@ def _contact_section(out_dir, stages, frames, fids, mesh, rcfg) -> str:
         for key in ("annotated", "overlap_2d", "distance_3d"):
             if key in contact:
                 rows[f"source: {key}"] = contact[key]
+        if "held" in contact and np.asarray(contact["held"]).any():  # `contact.held_frames`
+            rows["source: held (no fall)"] = contact["held"]
         parts.append(_raster("Contact per frame and body region", rows, fids))
         dist = contact.get("region_distance_m")
         if dist is not None and dist.size:

@@ -167,23 +167,18 @@ def held_frames(contact: np.ndarray, regions: np.ndarray, centres: np.ndarray, o
     _, unfallen = falling_episodes(centres, episodes, fps, up, max_residual_m)
     tracked = np.isfinite(centres).all(1)
 
-    def rest(first: int, last: int, anchor: int, backwards: bool) -> int:
-        """The first frame, walking in from `anchor`, whose centre is `rest_m` or more from the anchor's."""
-        steps = range(last, first - 1, -1) if backwards else range(first, last + 1)
-        for k in steps:
-            if tracked[k] and np.linalg.norm(centres[k] - centres[anchor]) >= rest_m:
-                return k
-        return anchor
+    def first_moved(frames: range) -> int:
+        """The first of `frames` whose centre lies `rest_m` or more from the first one's (else the first)."""
+        anchor = centres[frames[0]]
+        return next((k for k in frames if tracked[k] and np.linalg.norm(centres[k] - anchor) >= rest_m), frames[0])
 
     for a, b, _ in unfallen:
         before = regions[a - 1] if a > 0 and contact[a - 1] else np.zeros(regions.shape[1], bool)
         after = regions[b + 1] if b + 1 < T and contact[b + 1] else np.zeros(regions.shape[1], bool)
         if not (before.any() or after.any()):
             continue  # nobody to give it to: `global` and `physics` say so
-        first = a if before.any() else rest(a, b, a, backwards=False)
-        last = b if after.any() else rest(a, b, b, backwards=True)
-        if last < first:
-            continue
+        first = a if before.any() else first_moved(range(a, b + 1))
+        last = b if after.any() else first_moved(range(b, a - 1, -1))
         held[first:last + 1] = True
         holding[first:last + 1] = before | after
         runs.append((int(first), int(last)))

@@ -156,7 +156,7 @@ def test_symmetry_detection_on_box_cylinder_and_irregular_mesh():
 
 
 def test_the_nearest_equivalent_rotation_takes_out_the_free_turn_only():
-    """A cylinder turned about its axis and a box flipped 180 degrees look as before: the nearest
+    """A cylinder turned about its axis or upside down and a box flipped 180 degrees look as before: the nearest
     equivalent rotation to the unturned pose is that pose; a tilt stays, and an asymmetric object keeps its own."""
     from intercap.geometry.symmetry import nearest_equivalent_rotation
 
@@ -164,6 +164,8 @@ def test_the_nearest_equivalent_rotation_takes_out_the_free_turn_only():
     cylinder = detect_symmetry(trimesh.creation.cylinder(radius=0.05, height=0.2, sections=64))
     spun = reference @ axis_angle_matrix([0, 0, 1], math.radians(137))
     np.testing.assert_allclose(nearest_equivalent_rotation(spun, reference, cylinder), reference, atol=1e-9)
+    upside_down = spun @ axis_angle_matrix([0.6, 0.8, 0], math.pi) @ axis_angle_matrix([0, 0, 1], math.radians(29))
+    np.testing.assert_allclose(nearest_equivalent_rotation(upside_down, reference, cylinder), reference, atol=1e-9)
     tilted = spun @ axis_angle_matrix([1, 0, 0], math.radians(10))
     kept = nearest_equivalent_rotation(tilted, reference, cylinder)
     assert abs(rotation_angle_deg(kept, reference) - 10.0) < 1e-6  # the tilt is not a symmetry

@@ -101,6 +101,10 @@ class ObjectConfig:
     # a symmetric object's pose keeps its last trusted turn about its symmetry (else a spin, invisible
     # to E_O, lives on in the constant-velocity prediction: a cup turned 67-178 degrees per frame)
     hold_symmetric_turn: bool = True
+    # a fit turned more than this per frame since the last trusted one is untrusted (0: no limit;
+    # a real object rarely turns 45 degrees in 33 ms: a spinning toss at 2 turns/s turns 24) ...
+    max_turn_deg_per_frame: float = 45.0
+    fast_turn_energy_ratio: float = 0.8  # ... unless its E_O is below this times the recent level (turned back: a recovery)
     background_frames: int = 30
     background_valid_fraction: float = 0.3  # pixels measured in fewer of those frames have no background (dark floors lose ~40%)
     bridge_fraction: float = 0.006  # derived masks: join object fragments this far apart (fraction of image width)

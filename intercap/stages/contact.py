@@ -154,31 +154,45 @@ def held_frames(contact: np.ndarray, regions: np.ndarray, centres: np.ndarray, o
     """Frames where the object must be held though no region was seen touching it: it touches neither
     the body (`contact` (T,)) nor the floor (`on_ground` (T,)) for `min_frames` or more, moves, and does
     not fall (`dynamics.flight.falling_episodes`: a parabola under gravity misses its centres (T, 3) by
-    more than `max_residual_m` RMS). Whoever held it before the run (the `regions` (T, R) touching in the
-    contact frame just before) holds it until it comes to rest where it stays (its centre within `rest_m`
-    of where the run ends); whoever takes it after the run held it since it left where it lay. One view
-    cannot place a hand along its rays: a cup at the mouth, its hand 13 cm behind it, touched nothing
-    by distance for 2 s. Returns held (T,) bool, the regions holding (T, R) bool, and the runs (first, last)."""
+    more than `max_residual_m` RMS). Fewer than `min_frames` untracked frames in a row (NaN centres) do
+    not end a run, nor stand between it and a contact. Whoever held it before the run (the `regions`
+    (T, R) touching in the contact frame just before) holds it until it comes to rest where it stays
+    (its centre within `rest_m` of where it lies over the run's last `min_frames` frames); whoever
+    takes it after the run held it since it left where it lay. One view cannot place a hand along
+    its rays: a cup at the mouth, its hand 13 cm behind it, touched nothing by distance for 2 s.
+    Returns held (T,) bool, the regions holding (T, R) bool, and the runs (first, last)."""
     from intercap.dynamics.flight import falling_episodes, find_flight_episodes
 
     T = len(contact)
     held, holding, runs = np.zeros(T, bool), np.zeros(regions.shape, bool), []
-    episodes = find_flight_episodes(centres, contact | on_ground, up, fps, min_frames)
+    episodes = find_flight_episodes(centres, contact | on_ground, up, fps, min_frames, max_gap_frames=min_frames - 1)
     _, unfallen = falling_episodes(centres, episodes, fps, up, max_residual_m)
     tracked = np.isfinite(centres).all(1)
 
     def first_moved(frames: range) -> int:
-        """The first of `frames` whose centre lies `rest_m` or more from the first one's (else the first)."""
-        anchor = centres[frames[0]]
+        """The first of `frames` whose centre lies `rest_m` or more from where the first `min_frames`
+        tracked ones lie (their median: one view's cup on a table jitters 5-16 mm frame to frame)
+        (else the first)."""
+        anchor = np.median(centres[[k for k in frames if tracked[k]][:min_frames]], axis=0)
         return next((k for k in frames if tracked[k] and np.linalg.norm(centres[k] - anchor) >= rest_m), frames[0])
 
+    def past_untracked(k: int, step: int) -> int:
+        """k, or the first tracked frame from k on in `step` within `min_frames` (frames the tracker did
+        not trust say nothing of a fall: one view, a cup at the mouth, 4 untrusted frames cut a run)."""
+        j = k
+        while 0 <= j < T and not tracked[j] and abs(j - k) + 1 < min_frames:
+            j += step
+        return j
+
+    nobody = np.zeros(regions.shape[1], bool)
     for a, b, _ in unfallen:
-        before = regions[a - 1] if a > 0 and contact[a - 1] else np.zeros(regions.shape[1], bool)
-        after = regions[b + 1] if b + 1 < T and contact[b + 1] else np.zeros(regions.shape[1], bool)
+        i, j = past_untracked(a - 1, -1), past_untracked(b + 1, 1)
+        before = regions[i] if i >= 0 and contact[i] else nobody
+        after = regions[j] if j < T and contact[j] else nobody
         if not (before.any() or after.any()):
             continue  # nobody to give it to: `global` and `physics` say so
-        first = a if before.any() else first_moved(range(a, b + 1))
-        last = b if after.any() else first_moved(range(b, a - 1, -1))
+        first = i + 1 if before.any() else first_moved(range(a, b + 1))
+        last = j - 1 if after.any() else first_moved(range(b, a - 1, -1))
         held[first:last + 1] = True
         holding[first:last + 1] = before | after
         runs.append((int(first), int(last)))

@@ -90,6 +90,7 @@ class SynthConfig:
     # appearance and lighting (real captures vary: skin tones, clothing, dim or bright rooms)
     appearance: int = 0  # 0: the default outfit; N > 0: a skin tone, hair and clothing colours drawn with seed N
     light: float = 1.0  # scale of the lights' intensities (0.4: a dim room; 1.6: a bright one)
+    flight_turns: float = 0.0  # toss: whole turns the object spins in flight (1 = 2 turns/s, 24 degrees a frame at 30 fps)
     # dropped frames
     drop_rate: float = 0.0  # fraction of frames missing in one view
     drop_view: int = -1  # which camera (index) loses them
@@ -702,6 +703,10 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     script = get_script(cfg.script)
+    if cfg.flight_turns:
+        if script.flight is None or script.flight[0] != "catch":
+            raise ValueError(f"--flight-turns needs a script with a caught flight (toss), not {cfg.script!r}")
+        script = dataclasses.replace(script, flight_turns=float(cfg.flight_turns))
     spec = make_object(cfg.object or script.default_object)
     times, speed = script_times(script.duration, cfg)
     T = len(times)
@@ -861,6 +866,8 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     parser.add_argument("--appearance", type=int, default=None,
                         help="0: the default outfit; N > 0: skin tone, hair and clothes drawn with seed N")
     parser.add_argument("--light", type=float, default=None, help="scale of the lights (0.4 dim, 1.6 bright)")
+    parser.add_argument("--flight-turns", type=float, default=None,
+                        help="toss: whole turns the object spins about its own x axis in flight (1 = 2 turns/s)")
     parser.add_argument("--drop-rate", type=float, default=None, help="fraction of frames missing in one view")
     parser.add_argument("--drop-view", type=int, default=None)
     parser.add_argument("--annotate", action="store_true", default=None,
@@ -877,7 +884,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
     changes = {}
     simple = ["script", "object", "frames", "fps", "seed", "phenotype", "cameras", "width", "height", "focal_scale",
               "ring_radius", "ring_height", "look_at", "dist", "color_format", "clean_depth", "drop_rate", "drop_view",
-              "annotate", "ik_iters", "threads", "quiet", "appearance", "light"]
+              "annotate", "ik_iters", "threads", "quiet", "appearance", "light", "flight_turns"]
     for name in simple:
         value = getattr(args, name, None)
         if value is not None:

@@ -101,6 +101,7 @@ class Script:
     # free flight: ("catch", t_release, t_catch) thrown and caught again, or ("drop", t_release)
     # falling onto the floor; the object follows an exact parabola under GRAVITY in between
     flight: tuple | None = None
+    flight_turns: float = 0.0  # "catch": whole turns about the object's own x axis in flight (a spinning toss)
 
 
 def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
@@ -536,8 +537,10 @@ def flight_track(script: Script, plan: np.ndarray, times: np.ndarray, half_heigh
     The flight leaves the plan at the last frame r at or before the release time. "catch":
     it rejoins the plan at the first frame c at or after the catch time; in between the
     centre follows p(t) = p_r + v0 (t - t_r) - 0.5 GRAVITY (t - t_r)^2 z with v0 chosen to
-    meet p_c, the rotation turns at a constant rate from R_r to R_c. "drop": it falls from
-    rest, R held, until its centre is `half_height` above the floor, then lies there."""
+    meet p_c, the rotation turns at a constant rate from R_r to R_c, plus `script.flight_turns`
+    whole turns about the object's x axis (a principal axis of the generator's objects, so a
+    constant spin is torque-free and exact when R_r = R_c). "drop": it falls from rest, R held,
+    until its centre is `half_height` above the floor, then lies there."""
     out = plan.copy()
     kind, t_release = script.flight[0], script.flight[1]
     r = int(np.flatnonzero(times <= t_release + 1e-9)[-1])
@@ -552,7 +555,8 @@ def flight_track(script: Script, plan: np.ndarray, times: np.ndarray, half_heigh
         out[sel, :3, 3] = p_r + dt[:, None] * v0 + 0.5 * dt[:, None] ** 2 * acc
         w = dt / span
         R_r, R_c = Rotation.from_matrix(plan[r, :3, :3]), Rotation.from_matrix(plan[c, :3, :3])
-        out[sel, :3, :3] = (R_r * Rotation.from_rotvec((R_r.inv() * R_c).as_rotvec() * w[:, None])).as_matrix()
+        spin = Rotation.from_rotvec(np.outer(2 * np.pi * script.flight_turns * w, [1.0, 0.0, 0.0]))
+        out[sel, :3, :3] = (R_r * Rotation.from_rotvec((R_r.inv() * R_c).as_rotvec() * w[:, None]) * spin).as_matrix()
         return out, ((int(sel[0]), int(sel[-1])) if len(sel) else None)
     if kind != "drop":
         raise ValueError(f"script {script.name}: unknown flight kind {kind!r}")

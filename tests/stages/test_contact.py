@@ -236,6 +236,40 @@ def test_an_object_that_touches_nothing_but_does_not_fall_is_held_by_the_hand_th
     assert holding[held, 0].all() and not holding[:, 1].any()
 
 
+def test_a_few_untracked_frames_neither_end_a_held_run_nor_hide_the_hand_after_it():
+    """Frames the object tracker did not trust (NaN centres), fewer than `min_frames` in a row: inside
+    the run at the mouth, and just before the hand that takes the cup from the table."""
+    centres, contact, regions, fps = _carried()
+    on_ground = centres[:, 2] < 0.02
+    inside = centres.copy()
+    inside[60:64] = np.nan
+    held, holding, runs = contact_module_held(contact, regions, inside, on_ground, fps)
+    assert runs == [(40, 84)] and held[40:85].all() and holding[held, 1].all()
+    later = np.zeros_like(contact)
+    later[86:100] = True
+    hands = np.zeros_like(regions)
+    hands[86:100, 0] = True
+    before_hand = centres.copy()
+    before_hand[82:86] = np.nan
+    held, holding, runs = contact_module_held(later, hands, before_hand, on_ground, fps)
+    assert runs == [(21, 85)] and holding[held, 0].all()
+    far = centres.copy()
+    far[78:86] = np.nan  # as many untracked frames as a flight needs: the hand after them says nothing
+    held, _, runs = contact_module_held(later, hands, far, on_ground, fps)
+    assert not held[78:86].any()
+
+
+def test_a_held_run_ends_where_the_object_comes_to_rest_despite_jitter():
+    """One view's cup on a table jitters from frame to frame (here +-7 mm along x, the last frame
+    12 mm off): the hand let go where it came to rest (frame 85), not at the last jittery frame."""
+    centres, contact, regions, fps = _carried()
+    jitter = centres.copy()
+    jitter[86:, 0] += 0.007 * (-1.0) ** np.arange(len(centres) - 86)
+    jitter[-1, 0] = centres[-1, 0] + 0.012  # 19 mm from every other frame on the table
+    held, _, runs = contact_module_held(contact, regions, jitter, centres[:, 2] < 0.02, fps)
+    assert runs == [(40, 84)] and not held[85:].any()
+
+
 def test_a_falling_object_or_one_nobody_held_is_not_held():
     T, fps = 60, 30.0
     t = np.arange(T) / fps

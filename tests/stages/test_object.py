@@ -1,4 +1,5 @@
 """Object stage: tracking a synthetic session recovers the true poses; lost frames are marked."""
+import dataclasses
 import shutil
 from pathlib import Path
 
@@ -451,3 +452,43 @@ def test_seams_are_tracked_across_as_one_process_tracks_them(box_session, tmp_pa
     assert again == cfg.object.seam_agree_frames
     assert np.allclose(joined["t"][lo:lo + again], whole["t"][lo:lo + again], atol=1e-4)
     assert np.array_equal(joined["t"][lo + again:], right["t"][lo + again:])
+
+
+@pytest.mark.parametrize("energy_scale", [1.0, 0.5])
+def test_a_trusted_fit_that_turned_too_fast_is_untrusted(box_session, energy_scale):
+    """A fit with a good E_O and IoU that turned 60 degrees in one frame (a look-alike pose one
+    view cannot tell apart) is marked untrusted under `object.max_turn_deg_per_frame` = 45, and
+    tracking goes on from the last trusted pose; with an E_O well below the recent level (a turn
+    back onto the object: `fast_turn_energy_ratio`), it is trusted as it came."""
+    from intercap.geometry.symmetry import axis_angle_matrix, rotation_angle_deg
+    from intercap.stages.object import REINITIALISED, TRACKED, run_searches, track_steps
+
+    session = Session.load(box_session)
+    cfg = load_config().object
+    assert cfg.max_turn_deg_per_frame == 45.0
+    tracker = ObjectTracker(session, cfg, session.object.load_mesh())
+    target, turn = 5, axis_angle_matrix([1.0, 2.0, 3.0], np.radians(60.0))
+    current = {}
+    observe, fit_many = tracker.observe, tracker.fit_many
+
+    def observe_noting_frame(frame_id, *args, **kwargs):
+        current["frame"] = frame_id
+        return observe(frame_id, *args, **kwargs)
+
+    def fit_many_turning_one_frame(requests):
+        fits = fit_many(requests)
+        if current["frame"] == session.frame_ids[target]:
+            fits = [dataclasses.replace(f, R=f.R @ turn, energy=f.energy * energy_scale) for f in fits]
+        return fits
+
+    tracker.observe, tracker.fit_many = observe_noting_frame, fit_many_turning_one_frame
+    frames = session.frame_ids[:target + 3]
+    (state,) = run_searches(tracker, [track_steps(tracker, frames, None, session.object.initial_pose)])
+    assert np.isin(state["status"][:target], (TRACKED, REINITIALISED)).all()
+    if energy_scale == 1.0:
+        assert state["status"][target] == UNTRUSTED and np.isnan(state["R"][target]).all()
+        assert state["confidence"][target] == 0.0 and np.isfinite(state["energy"][target])
+        assert (state["status"][target + 1:] == TRACKED).all()  # on from the last trusted pose
+    else:
+        assert state["status"][target] == TRACKED
+        assert rotation_angle_deg(state["R"][target], state["R"][target - 1]) > 55.0

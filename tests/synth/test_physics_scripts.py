@@ -46,6 +46,26 @@ def test_toss_flight_is_an_exact_parabola_with_10_frames():
     np.testing.assert_allclose(poses[b + 1:], plan[b + 1:])
 
 
+def test_a_spinning_toss_turns_at_a_constant_rate_about_the_object_x_axis():
+    """`flight_turns` = 1: one whole turn in the 0.5 s flight (24 degrees a frame at 30 fps) about
+    the object's own x axis, the same parabola, and the planned pose again at the catch."""
+    import dataclasses
+
+    from scipy.spatial.transform import Rotation
+
+    script, spec, times, plan, still, flight, contact = script_object("toss")
+    spinning = dataclasses.replace(script, flight_turns=1.0)
+    poses, same_flight = flight_track(spinning, plan, times, spec.half_height)
+    a, b = flight
+    assert same_flight == flight
+    np.testing.assert_allclose(poses[:, :3, 3], still[:, :3, 3])
+    np.testing.assert_allclose(poses[b + 1], plan[b + 1])
+    steps = Rotation.from_matrix(np.einsum("tji,tjk->tik", poses[a - 1:b + 1, :3, :3], poses[a:b + 2, :3, :3]))
+    np.testing.assert_allclose(np.degrees(steps.magnitude()), np.full(b - a + 2, 360.0 / (b - a + 2)), atol=1e-6)
+    np.testing.assert_allclose(np.abs(steps.as_rotvec()[:, 0]), steps.magnitude(), atol=1e-9)  # about x (object frame)
+    assert 23.0 < 360.0 / (b - a + 2) < 25.0
+
+
 def test_drop_falls_from_rest_and_lands_flat():
     script, spec, times, plan, poses, flight, contact = script_object("drop")
     a, b = flight

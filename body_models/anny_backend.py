@@ -14,6 +14,7 @@ the knee, -x swings the thigh forward), y abducts, z twists.
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import warnings
@@ -164,9 +165,30 @@ def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
         Path(cache_dir).mkdir(parents=True, exist_ok=True)
         anny.paths.set_anny_cache_path(cache_dir)
     cache = anny.paths.get_anny_cache_path()
-    if not any(cache.glob("**/*")):
-        log.warning("building the anny cache in %s (about a minute, once)", cache)
-    return anny.Anny(facial_actions="all", pose_parameterization="local-ref", skinning_method=skinning)
+    with cache_lock(cache):
+        if not any(p.suffix == ".safetensors" for p in cache.glob("**/*")):
+            log.warning("building the anny cache in %s (about a minute, once)", cache)
+        return anny.Anny(facial_actions="all", pose_parameterization="local-ref", skinning_method=skinning)
+
+
+@contextlib.contextmanager
+def cache_lock(cache: Path):
+    """Hold an exclusive lock on `cache` while the model is built: anny writes its cache file in
+    place, so processes starting together on a fresh machine (a run's workers, Ray tasks, test
+    workers) would otherwise build it at once and one could read the other's half-written file.
+    Later constructions only load (under a second each)."""
+    cache.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: no lock
+        yield
+        return
+    with open(cache / ".intercap.lock", "w") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 class _SparseSkinning(torch.autograd.Function):

@@ -21,6 +21,7 @@ know the truth that was written.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import cv2
@@ -41,6 +42,21 @@ TINY_LOOK_AT = (0.0, 0.0, 0.8)
 TINY_CONTACT = (False, False, True)  # ground-truth contact for frames 0, 1, 2 (and False after)
 TINY_COLORS = {0: (0, 0, 0), 1: (120, 120, 120), 2: (200, 40, 40), 3: (40, 60, 200)}  # label -> RGB
 LABEL_NONE, LABEL_GROUND, LABEL_OBJECT, LABEL_PERSON = 0, 1, 2, 3
+
+
+def pytest_configure(config):
+    """A pytest-xdist worker (setup.cfg starts one per core) takes its share of the cores for torch's
+    threads, and the processes it starts inherit it: workers each running all cores' threads slow
+    each other badly."""
+    workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
+    if workers > 1:
+        import torch
+
+        from intercap.parallel import cpu_count
+
+        threads = max(1, cpu_count() // workers)
+        os.environ["OMP_NUM_THREADS"] = str(threads)
+        torch.set_num_threads(threads)
 
 
 def rot_z(deg: float) -> np.ndarray:

@@ -31,8 +31,9 @@ bench() {  # NAME TIMEOUT ARGS...
     cp /tmp/k_$name/*_out/profile.txt "$OUT/${name}_profile.txt" 2>/dev/null
 }
 if [ "${TESTS_S:-200}" != 0 ]; then
-    # SIGINT at the limit: pytest stops and still reports the failures so far
-    timeout -s INT -k 15 "${TESTS_S:-200}" python3 -m pytest -q --tb=short -p no:cacheprovider ${TESTS:-tests/test_cuda.py} \
+    # SIGINT at the limit: pytest stops and still reports the failures so far; one process
+    # (without setup.cfg's xdist workers, which the bundle need not carry), the GPU to itself
+    timeout -s INT -k 15 "${TESTS_S:-200}" python3 -m pytest -q --tb=short -p no:cacheprovider -o addopts=-ra -p no:xdist ${TESTS:-tests/test_cuda.py} \
         > "$OUT/test_cuda.log" 2>&1
     echo "test_cuda: rc $? after $(( $(date +%s) - T0 )) s"; tail -n 15 "$OUT/test_cuda.log"
 fi

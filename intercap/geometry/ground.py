@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 
-from intercap.geometry.pointclouds import as_points, to_o3d
+from intercap.geometry.pointclouds import as_points, open3d_threads, to_o3d
 
 
 def up_hint_from_cameras(T_world_from_cam: np.ndarray) -> np.ndarray:
@@ -60,15 +60,18 @@ def ransac_planes(
 ) -> list[np.ndarray]:
     """Up to `max_planes` planes found one after another (inliers removed between
     searches), largest first; returns each plane's inlier indices into `points`.
-    Seed open3d's RNG beforehand for determinism."""
+    Seed open3d's RNG beforehand for determinism. Open3D runs single-threaded here: its threads
+    share the RNG in whatever order the scheduler gives them, and one session's floor came out
+    tilted differently in 1 run of 5 (stop 44; 0.02 s a search on one thread)."""
     remaining = np.arange(len(points))
     found = []
     for _ in range(max_planes):
         if len(remaining) < max(3, min_inliers):
             break
-        _, idx = to_o3d(points[remaining]).segment_plane(
-            distance_threshold=float(distance_threshold), ransac_n=3, num_iterations=int(iterations)
-        )
+        with open3d_threads(1):
+            _, idx = to_o3d(points[remaining]).segment_plane(
+                distance_threshold=float(distance_threshold), ransac_n=3, num_iterations=int(iterations)
+            )
         idx = np.asarray(idx, dtype=np.int64)
         if len(idx) < min_inliers:
             break

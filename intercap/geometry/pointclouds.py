@@ -2,6 +2,8 @@
 fusing the views' world clouds."""
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import open3d as o3d
 
@@ -11,6 +13,17 @@ def as_points(points, what="points") -> np.ndarray:
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ValueError(f"{what} must be (N, 3), got shape {arr.shape}")
     return arr
+
+
+@contextlib.contextmanager
+def open3d_threads(n: int):
+    """Open3D's parallel loops use at most `n` threads inside the block."""
+    before = o3d.utility.get_max_threads()
+    o3d.utility.set_max_threads(n)
+    try:
+        yield
+    finally:
+        o3d.utility.set_max_threads(before)
 
 
 def to_o3d(points: np.ndarray) -> o3d.geometry.PointCloud:

@@ -37,7 +37,6 @@ to check.
 """
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import hashlib
 import logging
@@ -61,6 +60,7 @@ from intercap.energies.losses import (
 )
 from intercap.energies import optim
 from intercap.geometry.cameras import Cameras, pixel_rays, project
+from intercap.geometry.pointclouds import open3d_threads
 from intercap.geometry.rendering import Capacity, MeshTopology, crop_observation, render
 from intercap.geometry.segmentation import (
     background_depth,
@@ -127,17 +127,6 @@ def same_pose(a, b, distance_m: float, angle_deg: float = 10.0) -> bool:
     """Poses (R, t) within `distance_m` (translation) and `angle_deg` (rotation) of each other."""
     cos = (np.trace(np.asarray(a[0]).T @ np.asarray(b[0])) - 1) / 2
     return bool(np.linalg.norm(np.asarray(a[1]) - np.asarray(b[1])) < distance_m and cos > np.cos(np.radians(angle_deg)))
-
-
-@contextlib.contextmanager
-def open3d_threads(n: int):
-    """Open3D's parallel loops use at most `n` threads inside the block."""
-    before = o3d.utility.get_max_threads()
-    o3d.utility.set_max_threads(n)
-    try:
-        yield
-    finally:
-        o3d.utility.set_max_threads(before)
 
 
 def distinct(poses: list, distance_m: float, taken: list = ()) -> list:
@@ -773,14 +762,31 @@ def untracked(T: int) -> dict[str, np.ndarray]:
             "status": np.zeros(T, np.int64), "energy": np.full(T, np.nan), "confirmed": np.zeros(T, bool)}
 
 
-def turned_too_fast(R, R_last, frames: int, max_deg_per_frame: float) -> bool:
+def spin_prediction(history: list, max_deg_per_frame: float):
+    """The constant-velocity rotation for the next frame (`predict_pose`) when the last two frames
+    were trusted and turned at most `max_deg_per_frame` between them (a spin), else None: a jump
+    let through as a turn back (`fast_turn_energy_ratio`) is not a rate to carry on (seed 85: an
+    88-degree jump, extrapolated, let a wrong fit in and the cup was tracked upside down)."""
+    if len(history) < 2 or history[-1] is None or history[-2] is None:
+        return None
+    if max_deg_per_frame > 0 and float(rotation_angle_deg(history[-1][0], history[-2][0])) > max_deg_per_frame:
+        return None
+    return predict_pose(history)[0]
+
+
+def turned_too_fast(R, R_last, frames: int, max_deg_per_frame: float, R_predicted=None) -> bool:
     """A fit turned further from the last trusted rotation than `max_deg_per_frame` per frame since
-    (0: no limit). One view of a cup at the mouth changes its silhouette little as it tilts toward
-    or from the camera: fits a good E_O trusts jumped 52-88 degrees in a frame while the cup turned
-    at most 6 (BENCHMARKS, stop 42); such a fit is better left to the global stage's smoothing.
+    (0: no limit), and, given the constant-velocity prediction `R_predicted` for this frame, also
+    further than `max_deg_per_frame` from that. One view of a cup at the mouth changes its
+    silhouette little as it tilts toward or from the camera: fits a good E_O trusts jumped 52-88
+    degrees in a frame while the cup turned at most 6 (BENCHMARKS, stop 42); such a fit is better
+    left to the global stage's smoothing. A spinning toss the tracker caught up with after lagging
+    turns fast from the last pose but not from the spin's prediction (stop 44).
     `track_steps` still trusts one whose E_O is well below the recent level: a turn back onto the
     object after frames tracked wrong (2 views: 0.63 of the level, against 1.0-1.6 for the jumps)."""
-    return max_deg_per_frame > 0 and float(rotation_angle_deg(R, R_last)) > max_deg_per_frame * frames
+    if max_deg_per_frame <= 0 or float(rotation_angle_deg(R, R_last)) <= max_deg_per_frame * frames:
+        return False
+    return R_predicted is None or float(rotation_angle_deg(R, R_predicted)) > max_deg_per_frame
 
 
 def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path | None = None, initial_pose=None,
@@ -796,8 +802,8 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path 
     (`ObjectTracker.refit`, ~0.5 s) and, if that fails too, from registration
     hypotheses (`initialise`, seconds); the lowest E_O wins. Its pose is trusted
     when the IoU is enough, E_O at most `trust_energy_ratio` times the level and
-    it turned no faster than `max_turn_deg_per_frame` from the last trusted pose
-    (unless E_O is under `fast_turn_energy_ratio` times the level);
+    it turned no faster than `max_turn_deg_per_frame` from the last trusted pose or from the
+    constant-velocity prediction (unless E_O is under `fast_turn_energy_ratio` times the level);
     other frames, and those where no view sees the object, are marked (NaN pose,
     confidence 0). With derived masks, nothing near the prediction sends the
     search over the whole foreground before the frame is called lost.
@@ -886,7 +892,8 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Path 
             if last_at is not None and cfg.hold_symmetric_turn:
                 pose = tracker.turned_like(*pose, history[last_at][0])
             if (last_at is not None
-                    and turned_too_fast(pose[0], history[last_at][0], i - last_at, cfg.max_turn_deg_per_frame)
+                    and turned_too_fast(pose[0], history[last_at][0], i - last_at, cfg.max_turn_deg_per_frame,
+                                        spin_prediction(history, cfg.max_turn_deg_per_frame))
                     and fit.energy > cfg.fast_turn_energy_ratio * reference):
                 pose = None  # unless it fits clearly better than the frames before: a turn back
         if fit is not None:

@@ -230,3 +230,29 @@ def test_axis_angle_to_matrix_is_rodrigues_everywhere():
         (grads[dtype],) = torch.autograd.grad((R * w.to(dtype)).sum(), leaf)
         assert torch.isfinite(grads[dtype]).all()
     assert torch.allclose(grads[torch.float32].double(), grads[torch.float64], atol=2e-5)
+
+
+def test_the_cache_lock_lets_one_builder_in_at_a_time(tmp_path):
+    """Two builders of a fresh anny cache (a run's workers, Ray tasks) take turns: the second enters
+    only after the first left, so it loads the finished file instead of a half-written one."""
+    import threading
+    import time
+
+    from intercap.body_models.anny_backend import cache_lock
+
+    events = []
+
+    def build(name):
+        with cache_lock(tmp_path / "cache"):
+            events.append((name, "in"))
+            time.sleep(0.3)
+            events.append((name, "out"))
+
+    first = threading.Thread(target=build, args=("a",))
+    first.start()
+    time.sleep(0.1)
+    second = threading.Thread(target=build, args=("b",))
+    second.start()
+    first.join()
+    second.join()
+    assert events == [("a", "in"), ("a", "out"), ("b", "in"), ("b", "out")]

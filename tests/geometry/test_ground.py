@@ -4,7 +4,7 @@ import pytest
 from conftest import FLOOR_NORMAL, FLOOR_POINT, floor_basis
 
 from intercap.geometry.ground import fit_ground_plane, up_hint_from_cameras
-from intercap.geometry.pointclouds import fuse_points
+from intercap.geometry.pointclouds import fuse_points, to_o3d
 
 
 def room_scene(seed=0, n_floor=12000, n_wall=16000, n_person=3000, noise=0.003):
@@ -61,6 +61,33 @@ def test_ground_plane_up_hint_and_determinism():
     e1, _ = floor_basis(FLOOR_NORMAL)
     w = fit_ground_plane(scene, up_hint=-e1)
     assert abs(w.normal @ e1) > 0.99
+
+
+def test_the_plane_search_runs_open3d_on_one_thread(monkeypatch):
+    """Open3D's RANSAC threads share one seeded RNG in scheduler order: on two threads a real
+    session's floor came out tilted differently in 1 run of 5, so `ransac_planes` searches on one
+    thread (and gives open3d its threads back after)."""
+    import open3d as o3d
+
+    import intercap.geometry.ground as ground
+
+    threads_seen = []
+
+    class Recording:
+        def __init__(self, cloud):
+            self.cloud = cloud
+
+        def segment_plane(self, **kwargs):
+            threads_seen.append(o3d.utility.get_max_threads())
+            return self.cloud.segment_plane(**kwargs)
+
+    monkeypatch.setattr(ground, "to_o3d", lambda points: Recording(to_o3d(points)))
+    before = o3d.utility.get_max_threads()
+    floor, wall, person = room_scene(seed=1)
+    plane = fit_ground_plane(np.concatenate([floor, wall, person]), person_points=person, seed=3)
+    assert plane_errors(plane)[0] < 1.0
+    assert threads_seen and set(threads_seen) == {1}
+    assert o3d.utility.get_max_threads() == before
 
 
 def test_up_hint_from_upright_cameras():

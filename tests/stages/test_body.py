@@ -387,23 +387,23 @@ def test_chunks_are_dealt_to_the_processes_in_runs():
     assert [len(g) for g in chunk_groups(120, gpu, gpu.object)] == [8]
 
 
-@pytest.mark.parametrize("workers, side_by_side", [(2, 1), (1, 2)])
-def test_chunks_fitted_by_workers_or_side_by_side_fit_the_take_as_one_chunk_does(tmp_path, workers, side_by_side):
-    """Cut in two chunks, fitted by spawned workers or side by side in one process (their batches in one
-    L-BFGS), the take's fit matches the truth as well as in one chunk."""
+def test_chunks_fitted_by_workers_or_side_by_side_fit_the_take_as_one_chunk_does(tmp_path):
+    """Cut in two chunks, fitted by two spawned workers or side by side in one process (their batches
+    in one L-BFGS), the take's fit matches the truth as well as in one chunk."""
     session = trimmed_copy(SAMPLE_SESSION, tmp_path / "session", 8)
     gt = np.load(session / "ground_truth" / "keypoints3d.npy")
     errors = {}
-    for key, overrides in (("one", ["run.workers=1"]),
-                           ("cut", [f"run.workers={workers}", f"body.side_by_side={side_by_side}"])):
-        out = tmp_path / key
-        cfg = load_config(overrides=[*overrides, "run.min_frames_per_worker=4", "body.batch_frames=4",
-                                     "report.enabled=false"])
+    for (workers, side_by_side) in ((1, 1), (2, 1), (1, 2)):
+        out = tmp_path / f"{workers}-{side_by_side}"
+        cfg = load_config(overrides=[f"run.workers={workers}", f"body.side_by_side={side_by_side}",
+                                     "run.min_frames_per_worker=4", "body.batch_frames=4", "report.enabled=false"])
         metrics = run_pipeline(session, out, cfg, stages=["body"], progress=False)["body"]
         assert metrics["frames_fitted"] == 8
-        assert (metrics["workers"], metrics["chunks"]) == ((1, 1) if key == "one" else (workers, 2))
-        errors[key] = 1000 * np.linalg.norm(np.load(out / "keypoints3d.npy")[:, :25] - gt[:, :25], axis=-1).mean()
-    assert errors["cut"] < 30 and abs(errors["cut"] - errors["one"]) < 3, errors
+        assert (metrics["workers"], metrics["chunks"]) == (workers, workers * side_by_side)
+        errors[workers, side_by_side] = 1000 * np.linalg.norm(np.load(out / "keypoints3d.npy")[:, :25] - gt[:, :25],
+                                                              axis=-1).mean()
+    for cut in ((2, 1), (1, 2)):
+        assert errors[cut] < 30 and abs(errors[cut] - errors[1, 1]) < 3, errors
 
 
 def test_chunks_side_by_side_resume_where_each_stopped(tmp_path, monkeypatch):

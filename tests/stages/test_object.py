@@ -492,3 +492,25 @@ def test_a_trusted_fit_that_turned_too_fast_is_untrusted(box_session, energy_sca
     else:
         assert state["status"][target] == TRACKED
         assert rotation_angle_deg(state["R"][target], state["R"][target - 1]) > 55.0
+
+
+def test_a_fast_turn_the_spin_predicts_is_not_too_fast():
+    """A tossed object spinning 25 degrees per frame, fitted 60 degrees from the last trusted pose
+    (the tracker lagged, then caught up) is 35 from the constant-velocity prediction: not too fast.
+    The same 60 degrees about another axis is far from the prediction too: too fast. A last step
+    over the limit (a jump let through) predicts nothing, nor does an untrusted frame."""
+    from intercap.geometry.symmetry import axis_angle_matrix
+    from intercap.stages.object import spin_prediction, turned_too_fast
+
+    def about(axis, deg):
+        return axis_angle_matrix(axis, np.radians(deg))
+
+    t = np.zeros(3)
+    spin = spin_prediction([(about([1.0, 0, 0], -25.0), t), (np.eye(3), t)], 45.0)
+    assert np.isclose(np.degrees(np.arccos((np.trace(spin) - 1) / 2)), 25.0)
+    assert spin_prediction([(about([1.0, 0, 0], -88.0), t), (np.eye(3), t)], 45.0) is None
+    assert spin_prediction([None, (np.eye(3), t)], 45.0) is None
+    assert turned_too_fast(about([1.0, 0, 0], 60.0), np.eye(3), 1, 45.0)  # the last pose alone
+    assert not turned_too_fast(about([1.0, 0, 0], 60.0), np.eye(3), 1, 45.0, spin)
+    assert turned_too_fast(about([0, 1.0, 0], 60.0), np.eye(3), 1, 45.0, spin)
+    assert not turned_too_fast(about([0, 1.0, 0], 40.0), np.eye(3), 1, 45.0, spin)

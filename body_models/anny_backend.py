@@ -163,29 +163,27 @@ def load_blend_shape(filename, vertices_count: int, world_transformation, dtype)
     return world_transformation.apply(blend_shape)
 
 
+def replace_in_anny(module, name: str, ours, originals: list) -> None:
+    """Put `ours` in place of anny's `module.name` (once: a later call finds ours there), keeping
+    anny's own in `originals` (the tests compare the two)."""
+    original = getattr(module, name)
+    if original.__module__.startswith("anny"):
+        originals.append(original)
+        setattr(module, name, ours)
+
+
 def build_anny(cache_dir: str | os.PathLike | None, skinning: str):
     """Construct the anny model, building its cache under `cache_dir` the first time."""
     import anny
+    import anny.models.full_model
+    import anny.models.phenotype
     import anny.paths
     import anny.utils.interpolation
 
-    original = anny.utils.interpolation.linear_interpolation_coefficients
-    if original.__module__.startswith("anny"):  # not replaced yet (see `interpolation_weights`)
-        ANNY_INTERPOLATION.append(original)
-        anny.utils.interpolation.linear_interpolation_coefficients = interpolation_weights
-    import anny.models.phenotype
-
-    original = anny.models.phenotype.phenotype_blendshape_weights
-    if original.__module__.startswith("anny"):  # not replaced yet (see `phenotype_weights`)
-        ANNY_PHENOTYPE_WEIGHTS.append(original)
-        anny.models.phenotype.phenotype_blendshape_weights = phenotype_weights
-
-    import anny.models.full_model
-
-    original = anny.models.full_model.load_blend_shape
-    if original.__module__.startswith("anny"):  # not replaced yet (see `load_blend_shape`)
-        ANNY_LOAD_BLEND_SHAPE.append(original)
-        anny.models.full_model.load_blend_shape = load_blend_shape
+    replace_in_anny(anny.utils.interpolation, "linear_interpolation_coefficients", interpolation_weights,
+                    ANNY_INTERPOLATION)
+    replace_in_anny(anny.models.phenotype, "phenotype_blendshape_weights", phenotype_weights, ANNY_PHENOTYPE_WEIGHTS)
+    replace_in_anny(anny.models.full_model, "load_blend_shape", load_blend_shape, ANNY_LOAD_BLEND_SHAPE)
 
     if cache_dir is not None:
         Path(cache_dir).mkdir(parents=True, exist_ok=True)

@@ -464,6 +464,129 @@ def check_calibration(
         return [f.result() for f in agreements]
 
 
+@dataclass
+class RigRefinement:
+    """Corrections to every camera's pose that make all views agree (`refine_rig`).
+
+    corrections: (C, 4, 4) world-frame transforms, T_world_from_cam <- correction @ T_world_from_cam;
+    moved_mm / turned_deg: (C,) how far each correction moves the clouds' centre, and its angle;
+    pairs: ordered view pairs that overlapped; iterations: Gauss-Newton steps taken;
+    residual_before_mm / residual_after_mm: weighted RMS point-to-plane residual of all pairs."""
+
+    corrections: np.ndarray
+    moved_mm: np.ndarray
+    turned_deg: np.ndarray
+    pairs: int
+    iterations: int
+    residual_before_mm: float
+    residual_after_mm: float
+
+
+def geometric_median(x: np.ndarray, iterations: int = 50) -> np.ndarray:
+    """The point (D,) nearest to all rows of x (N, D) in summed distance (Weiszfeld's iteration)."""
+    return huber_centre(x, 0.0, iterations)
+
+
+def huber_centre(x: np.ndarray, scale: float, iterations: int = 50) -> np.ndarray:
+    """Huber's centre (D,) of the rows of x (N, D): their mean while all lie within `scale` of it; a
+    row further out counts by its direction only (reweighted), so one far row does not drag it.
+    scale 0: the geometric median."""
+    m = x.mean(axis=0)
+    for _ in range(iterations):
+        w = np.minimum(1.0, max(scale, 1e-9) / np.maximum(np.linalg.norm(x - m, axis=1), 1e-12))
+        m = (w[:, None] * x).sum(axis=0) / w.sum()
+    return m
+
+
+def refine_rig(
+    points_per_view: list,
+    names: list[str],
+    camera_centers,
+    max_distance: float = 0.1,
+    voxel_size: float = 0.02,
+    plane_radius: float = 0.0,
+    iterations: int = 10,
+    prior: float = 1e-3,
+    linear_beyond_m: float = 0.006,
+    min_overlap: int = 200,
+    tolerance_m: float = 2e-5,
+) -> RigRefinement:
+    """Correct all cameras' poses at once so their clouds agree (the check only measures pairs).
+
+    points_per_view as in `check_calibration` (per view, one (N, 3) world array per frame). Each
+    ordered pair of views gives the check's point-to-plane correspondences, frame by frame; the
+    unknown is one scaled twist per camera about the clouds' centre, solved by Gauss-Newton over
+    all pairs together. A prior of `prior` x the largest curvature on each camera's total
+    correction keeps the directions the scene hardly constrains where they were (they would walk on
+    depth noise; tools/bench_calibration_refine); it grows with the square of a correction's length
+    (scaled twist, metres) up to `linear_beyond_m` and linearly beyond, so one camera that needs a
+    large correction gets it instead of the error being shared out. Moving every camera together changes no residual,
+    so the world frame is chosen: the corrections' Huber centre (`linear_beyond_m`) is none. Small
+    errors spread over all cameras average out (the mean: the world the fits saw before); one bumped
+    camera of a rig, far from the rest, is moved back to the others, which keep their poses."""
+    per_frame = [[p] if isinstance(p, np.ndarray) else list(p) for p in points_per_view]
+    C = len(per_frame)
+    if C != len(names) or len({len(p) for p in per_frame}) > 1:
+        raise ValueError(f"refine_rig: {C} views for {len(names)} names, frame counts {[len(p) for p in per_frame]}")
+    plane_radius = plane_radius if plane_radius > 0 else max(5 * voxel_size, 0.10)
+    centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
+    workers = max(1, min(os.cpu_count() or 1, C * len(per_frame[0])))
+    with ThreadPoolExecutor(workers) as pool:
+        frames = [pool.map(_view_frame, view, [voxel_size] * len(view), [plane_radius] * len(view),
+                           [name] * len(view), [centre] * len(view))
+                  for view, name, centre in zip(per_frame, names, centers)]
+        frames = [list(view) for view in frames]
+        everything = np.concatenate([f.points for view in frames for f in view] or [np.zeros((1, 3))])
+        centre = everything.mean(axis=0)
+        radius = max(float(np.sqrt(((everything - centre) ** 2).sum(axis=1).mean())), 1e-3)
+        pairs = [(a, b) for a in range(C) for b in range(C) if a != b]
+        X = np.zeros((C, 6))  # each camera's total correction, a scaled twist
+        T = np.eye(4)[None].repeat(C, axis=0)
+        residuals, used, steps = [], 0, 0
+
+        def pair_system(pair):
+            a, b = pair
+            q, n, r, _, sg = _correspondences(frames[a], frames[b], np.linalg.inv(T[b]) @ T[a], max_distance)
+            if len(r) < min_overlap:
+                return None
+            w = noise_weights(r, sg)
+            q, n = q @ T[b][:3, :3].T + T[b][:3, 3], n @ T[b][:3, :3].T  # b's frame of reference -> the world now
+            H, g = point_to_plane_system(q, n, r, w, centre, radius)
+            return a, b, H, g, float(np.sqrt((w * r * r).sum() / max(w.sum(), 1e-12)))
+
+        for steps in range(1, iterations + 1):
+            H = np.zeros((6 * C, 6 * C))
+            g = np.zeros(6 * C)
+            systems = [s for s in pool.map(pair_system, pairs) if s is not None]
+            for a, b, Hp, gp, _ in systems:  # r moves with +J under a's twist, -J under b's
+                ia, ib = slice(6 * a, 6 * a + 6), slice(6 * b, 6 * b + 6)
+                H[ia, ia] += Hp
+                H[ib, ib] += Hp
+                H[ia, ib] -= Hp
+                H[ib, ia] -= Hp
+                g[ia] += gp
+                g[ib] -= gp
+            residuals.append(float(np.mean([s[4] for s in systems])) if systems else float("nan"))
+            used = len(systems)
+            if not systems:
+                break
+            damping = prior * max(float(np.linalg.eigvalsh(H).max()), 1e-12)
+            # beyond `linear_beyond_m` a correction pays for its length, not its square (reweighted)
+            damping = damping * np.repeat(linear_beyond_m / np.maximum(np.linalg.norm(X, axis=1), linear_beyond_m), 6)
+            step = -np.linalg.solve(H + np.diag(damping), g + damping * X.reshape(-1)).reshape(C, 6)
+            X += step
+            T = np.stack([twist_transform(x, centre, radius) for x in X])
+            if np.abs(step).max() < tolerance_m:
+                break
+        X -= huber_centre(X, linear_beyond_m)  # the data see no common motion: see the docstring
+        T = np.stack([twist_transform(x, centre, radius) for x in X])
+        after = [s for s in pool.map(pair_system, pairs) if s is not None]
+    moved_turned = np.array([correction_size(t, centre) for t in T]).reshape(C, 2)
+    return RigRefinement(corrections=T, moved_mm=moved_turned[:, 0], turned_deg=moved_turned[:, 1], pairs=used,
+                         iterations=steps, residual_before_mm=residuals[0] * 1000 if residuals else float("nan"),
+                         residual_after_mm=float(np.mean([s[4] for s in after])) * 1000 if after else float("nan"))
+
+
 def suspect_cameras(results: list[PairAgreement]) -> list[str]:
     """Cameras that explain the flagged pairs: greedily the camera in the most flagged pairs
     (ties named together, "a or b", when nothing tells them apart), until every flagged pair

@@ -40,6 +40,11 @@ class PrepareConfig:
     calib_warn_mm: float = 6.0  # a pair is flagged when its observable correction exceeds this (or calib_warn_deg)
     calib_warn_deg: float = 0.3
     calib_k_sigma: float = 4.0  # ... and also calib_k_sigma standard deviations of itself (clear evidence only)
+    calib_refine: str = "auto"  # correct the cameras' poses from the depth: auto (when the check flags a pair), always, never
+    calib_refine_frames: int = 8  # frames (spread over the sequence) the refinement aligns
+    calib_refine_iterations: int = 10
+    calib_refine_prior: float = 1e-3  # pull of each camera's correction towards none (x the data's largest curvature)
+    calib_refine_linear_beyond_m: float = 0.006  # ... on its square up to this length, on its length beyond (a bumped camera may move far)
     save_clouds: bool = True  # write one fused .ply per checked frame for inspection
     seed: int = 0
 
@@ -390,7 +395,8 @@ def for_frame_rate(cfg: Config, fps: float) -> Config:
 
 # Settings with a fixed set of values, checked when the config is read (not when a stage reaches them).
 LINE_SEARCHES = ("auto", "strong_wolfe", "armijo")  # `optim.minimise`'s
-CHOICES = {("body", "line_search"): LINE_SEARCHES, ("global_", "line_search"): LINE_SEARCHES}
+CHOICES = {("body", "line_search"): LINE_SEARCHES, ("global_", "line_search"): LINE_SEARCHES,
+           ("prepare", "calib_refine"): ("auto", "always", "never")}
 
 
 # Sections whose name is a Python keyword: written `global` in YAML and overrides.

@@ -102,6 +102,8 @@ def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: 
         stage = STAGES[name]
         fingerprint = stage_fingerprint(stage, cfg, session.root, upstream)
         upstream.append(fingerprint)  # also of stages not run now: `--stages global` finds the full run's work
+        if name != "prepare":  # the later stages see the cameras `prepare` refined, in this run or a saved one
+            session.use_refined_calibration(out_dir)
         if name not in names:
             continue
         marker = out_dir / name / "DONE.json"

@@ -176,3 +176,46 @@ def test_a_rerun_gives_the_same_numbers(tmp_path):
     assert not torch.are_deterministic_algorithms_enabled()  # the caller's setting is given back
     for key in ("body_pose", "global_orient", "transl", "shape", "left_hand_pose"):
         assert np.array_equal(runs[0][key], runs[1][key]), key
+
+
+def test_a_bumped_camera_is_refined_and_the_later_stages_see_it(tmp_path):
+    """The sample with camera 2's calibration 10 mm / 0.5 deg off (a bumped camera): prepare's check
+    flags it, `calib_refine=auto` corrects the poses (the cameras then put the subject at least 40 %
+    nearer where most of them put it, and the whole world moves less than that), writes them as a
+    calibration.json, and a worker's session takes
+    them. With the refinement off, the next run's prepare leaves no corrected poses behind."""
+    from intercap.session import Session
+    from intercap.session.frame_cache import open_session
+    from tools.bench_calibration_check import drift_transform
+    from tools.bench_calibration_refine import subject_errors
+
+    session = tmp_path / "bumped"
+    session.mkdir()
+    for entry in SAMPLE.iterdir():
+        if entry.name != "calibration.json":
+            (session / entry.name).symlink_to(entry)
+    calibration = json.loads((SAMPLE / "calibration.json").read_text())
+    true_poses = np.array([c["T_world_from_cam"] for c in calibration["cameras"]])
+    bump = drift_transform(0.5, 10.0, seed=2, pivot=true_poses[2][:3, 3])
+    calibration["cameras"][2]["T_world_from_cam"] = (bump @ true_poses[2]).tolist()
+    (session / "calibration.json").write_text(json.dumps(calibration))
+
+    out = tmp_path / "out"
+    overrides = ["prepare.calib_frames=2", "prepare.ground_frames=3", "prepare.calib_refine_frames=4", "run.stages=prepare"]
+    metrics = run_pipeline(session, out, load_config(overrides=overrides), progress=False)["prepare"]
+    assert metrics["calibration_pairs_flagged"] >= 1 and metrics["calibration_refined"]
+    refined = json.loads((out / "prepare" / "calibration_refined.json").read_text())
+    poses = np.array([c["T_world_from_cam"] for c in refined["cameras"]])
+    errors = poses @ np.linalg.inv(true_poses)  # world-frame error of each camera's pose
+    subject = np.array([0.0, 0.0, 1.0])  # where the person stands
+    before = subject_errors(np.stack([np.eye(4), np.eye(4), bump, np.eye(4)]), subject)
+    after = subject_errors(errors, subject)
+    print(f"cameras apart at the subject: {before[0]:.1f} -> {after[0]:.1f} mm, common shift {after[1]:.1f} mm")
+    assert after[0] < 0.6 * before[0] and after[1] < before[0]
+    worker = open_session(str(session), out)
+    assert np.allclose([c.T_world_from_cam for c in worker.cameras], poses)
+    assert np.allclose(worker.cameras[2].K, Session.load(session).cameras[2].K)
+
+    run_pipeline(session, out, load_config(overrides=overrides + ["prepare.calib_refine=never"]), progress=False)
+    assert not (out / "prepare" / "calibration_refined.json").exists()
+    assert np.allclose(open_session(str(session), out).cameras[2].T_world_from_cam, bump @ true_poses[2])

@@ -159,15 +159,21 @@ def find_session(out_dir: Path, session=None, gt=None):
     from intercap.session import Session
 
     if session is not None:
-        return session if isinstance(session, Session) else Session.load(session)
+        return session if isinstance(session, Session) else _with_refined_calibration(Session.load(session), out_dir)
     recorded = [(_json(out_dir / name) or {}).get("session") for name in ("run.json", "report/session.json")]
     for candidate in (*recorded, gt):
         if candidate and Path(candidate).is_dir():
             try:
-                return Session.load(candidate)
+                return _with_refined_calibration(Session.load(candidate), out_dir)
             except Exception as exc:  # noqa: BLE001
                 log.warning("report: cannot load session %s (%s)", candidate, exc)
     return None
+
+
+def _with_refined_calibration(session, out_dir: Path):
+    """The session with the cameras the run's `prepare` refined, as the fits saw them."""
+    session.use_refined_calibration(out_dir)
+    return session
 
 
 def frame_sample(T: int, most: int) -> np.ndarray:
@@ -541,6 +547,17 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
         flagged = calib.get("flagged") or []
         msg = (f'<p class="warn">{len(flagged)} camera pair(s) disagree by more than {calib.get("warn_mm")} mm: '
                "check the calibration</p>") if flagged else "<p>no camera pair flagged</p>"
+        refined = _json(out_dir / "prepare" / "calibration_refined.json")
+        after = calib.get("after_refinement")
+        if refined is not None and after is not None:
+            still = after.get("flagged") or []
+            msg += ("<p>The cameras' poses were refined so all views' depth agrees (prepare.calib_refine); "
+                    "every later stage used them (OUT/prepare/calibration_refined.json, a calibration.json):</p>"
+                    + table(refined.get("corrections") or [], ["name", "moved_mm", "turned_deg"])
+                    + "<p>The check again with the refined poses:</p>"
+                    + table(after.get("pairs") or [], [c for c in cols if any(c in p for p in after.get("pairs") or [])])
+                    + (f'<p class="warn">{len(still)} camera pair(s) still disagree: check the calibration</p>' if still
+                       else "<p>no camera pair flagged after refining</p>"))
         page.add("calibration", "Calibration check",
                  f"<p>ICP between neighbouring cameras' clouds, frames {calib.get('frames')}</p>"
                  + table(calib.get("pairs") or [], [c for c in cols if any(c in p for p in calib.get("pairs") or [])])

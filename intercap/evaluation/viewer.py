@@ -140,7 +140,10 @@ def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> Vi
     if root is not None:
         meta = yaml.safe_load((root / "session.yaml").read_text()) or {}
         fps = float(meta.get("fps", fps))
+        from intercap.session.session import refined_cameras
+
         cameras = read_cameras(root)
+        cameras = refined_cameras(cameras, out_dir) or cameras  # as the fits saw them
         if meta.get("object", {}).get("mesh"):
             obj_mesh = root / meta["object"]["mesh"]
         frames = meta.get("frames") or {}

@@ -182,11 +182,13 @@ def attach(session, out_dir: Path | str, signature: str | None = None) -> bool:
 
 
 def open_session(session, out_dir: Path | str):
-    """A worker's session (workers are given its path), reading the run's frame cache where one is."""
+    """A worker's session (workers are given its path), reading the run's frame cache where one is,
+    with the cameras `prepare` refined."""
     from intercap.session import Session
 
     if not hasattr(session, "frame_ids"):
         session = Session.load(session)
+        session.use_refined_calibration(out_dir)
         attach(session, out_dir)
     return session
 

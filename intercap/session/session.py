@@ -16,6 +16,7 @@ never fatal. The readers return None for it.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import threading
@@ -44,6 +45,20 @@ from intercap.session.openpose import openpose_to_array
 from intercap.session.problems import Problem, ProblemList, SessionError, format_frame_list
 
 IO_WORKERS = max(1, min(8, (os.cpu_count() or 2) * 2))
+REFINED_CALIBRATION = Path("prepare") / "calibration_refined.json"  # in a run's OUT: the cameras' corrected poses
+
+
+def refined_cameras(cameras: list[CameraInfo], out_dir: Path | str) -> list[CameraInfo] | None:
+    """`cameras` with the poses a run's `prepare` stage refined (OUT/prepare/calibration_refined.json,
+    written only when it corrected them); None when there is none. Intrinsics stay the session's."""
+    path = Path(out_dir) / REFINED_CALIBRATION
+    if not path.exists():
+        return None
+    poses = {c["name"]: np.asarray(c["T_world_from_cam"], np.float64) for c in json.loads(path.read_text())["cameras"]}
+    names = [c.name for c in cameras]
+    if set(poses) != set(names) or any(T.shape != (4, 4) or not np.isfinite(T).all() for T in poses.values()):
+        raise ValueError(f"{path}: not this session's cameras ({', '.join(names)}); delete it and run prepare again")
+    return [dataclasses.replace(c, T_world_from_cam=poses[c.name]) for c in cameras]
 
 
 def in_threads(fn, items, threads: int | None = None) -> list:
@@ -106,6 +121,13 @@ class Session:
         if session is None:
             raise SessionError(path, problems)
         return session
+
+    def use_refined_calibration(self, out_dir: Path | str) -> bool:
+        """Take the camera poses a run's `prepare` stage refined (`refined_cameras`); True when it did."""
+        refined = refined_cameras(self.cameras, out_dir)
+        if refined is not None:
+            self.cameras = refined
+        return refined is not None
 
     def __repr__(self) -> str:
         return f"Session({str(self.root)!r}, {self.num_cameras} cameras, {self.num_frames} frames, {self.fps:g} fps)"

@@ -13,6 +13,7 @@ coloured clouds of the checked frames, for a person to open).
 """
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -20,12 +21,14 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from intercap.calib.alignment import check_calibration, format_agreement, suspect_cameras
+from intercap.calib.alignment import check_calibration, format_agreement, refine_rig, suspect_cameras
 from intercap.config import Config
 from intercap.geometry.cameras import Cameras, depth_to_point_grid, pixel_rays
 from intercap.geometry.ground import GroundPlane, fit_ground_plane, up_hint_from_cameras
 from intercap.geometry.pointclouds import fuse_points
 from intercap.io.files import write_json, write_point_cloud_ply
+from intercap.io.importing import camera_entry
+from intercap.session.session import REFINED_CALIBRATION
 
 log = logging.getLogger(__name__)
 
@@ -121,13 +124,115 @@ def check_views(points_per_view: list, names: list[str], centers, pcfg) -> list:
                              min_mm=pcfg.calib_warn_mm, min_deg=pcfg.calib_warn_deg)
 
 
+def view_points(session, clouds: ViewClouds, frame_ids, stage_dir: Path | None, desc: str,
+                progress: bool) -> tuple[list[list[np.ndarray]], int]:
+    """Per camera, its world points of each of `frame_ids` with at least two views (a dropped view
+    keeps the frame, without its points), and how many frames that is. With `stage_dir`, each
+    frame's fused coloured cloud goes to stage_dir/clouds/ for a person to open."""
+    per_view = [[] for _ in session.cameras]
+    used = 0
+    for frame_id in tqdm(frame_ids, desc=desc, disable=not progress):
+        views = clouds.frame(int(frame_id))
+        if stage_dir is not None:
+            write_point_cloud_ply(
+                stage_dir / "clouds" / f"{int(frame_id):06d}.ply",
+                np.concatenate([v["points"] for v in views]),
+                np.concatenate([v["colors"] for v in views]),
+            )
+        if sum(len(v["points"]) > 0 for v in views) < 2:
+            continue
+        used += 1
+        for c, v in enumerate(views):
+            per_view[c].append(v["points"] if len(v["points"]) else np.zeros((0, 3)))
+    return per_view, used
+
+
+def check_rig(session, clouds: ViewClouds, checked, stage_dir: Path, pcfg, progress: bool) -> tuple[list, int]:
+    """The calibration check on the `checked` frames (their clouds saved): per-pair agreements, frames used.
+    Frames are matched only with themselves (the person moves), and the person and object in several
+    poses constrain what the floor leaves free."""
+    per_view, used = view_points(session, clouds, checked, stage_dir if pcfg.save_clouds else None,
+                                 "prepare: calibration check", progress)
+    if not used:
+        return [], 0
+    return check_views(per_view, session.camera_names, clouds.cameras.centers.numpy(), pcfg), used
+
+
+def refine_cameras(session, clouds: ViewClouds, stage_dir: Path, pcfg, progress: bool) -> dict:
+    """Correct the cameras' poses so all views agree (`refine_rig`), in `session` and in
+    OUT/prepare/calibration_refined.json (the session's calibration with the new poses, usable as a
+    calibration.json); the figures for metrics.json."""
+    frames = spread_frames(session.frame_ids, pcfg.calib_refine_frames)
+    per_view, used = view_points(session, clouds, frames, None, "prepare: refining the calibration", progress)
+    if not used:
+        return {"calibration_refined": False}
+    names = session.camera_names
+    result = refine_rig(per_view, names, clouds.cameras.centers.numpy(), max_distance=pcfg.icp_max_distance_m,
+                        voxel_size=max(2 * pcfg.voxel_size_m, 0.02), iterations=pcfg.calib_refine_iterations,
+                        prior=pcfg.calib_refine_prior, linear_beyond_m=pcfg.calib_refine_linear_beyond_m)
+    cameras = [dataclasses.replace(c, T_world_from_cam=T @ c.T_world_from_cam)
+               for c, T in zip(session.cameras, result.corrections)]
+    rows = [{"name": c.name, "moved_mm": round(float(mm), 2), "turned_deg": round(float(deg), 3)}
+            for c, mm, deg in zip(cameras, result.moved_mm, result.turned_deg)]
+    write_json(stage_dir / REFINED_CALIBRATION.name, {
+        "world": "the session's world frame; camera poses corrected by `intercap run`'s prepare stage so all "
+                 "views' depth agrees (calibration_check.json: before and after)",
+        "cameras": [camera_entry(c.name, c.width, c.height, c.K, c.dist, c.T_world_from_cam) for c in cameras],
+        "corrections": rows, "frames": [int(f) for f in frames], "pairs": result.pairs,
+        "iterations": result.iterations, "residual_before_mm": result.residual_before_mm,
+        "residual_after_mm": result.residual_after_mm,
+    })
+    session.cameras = cameras
+    log.info("calibration refined on %d frames (%d view pairs, %d steps; residual %.2f -> %.2f mm): %s", used,
+             result.pairs, result.iterations, result.residual_before_mm, result.residual_after_mm,
+             ", ".join(f"{r['name']} {r['moved_mm']:.1f} mm / {r['turned_deg']:.2f} deg" for r in rows))
+    return {"calibration_refined": True, "calibration_refined_max_mm": float(result.moved_mm.max()),
+            "calibration_refined_max_deg": float(result.turned_deg.max())}
+
+
+def report_check(results: list, used_frames: int, pcfg) -> tuple[list[dict], list[str]]:
+    """Log the check's table and warnings; its JSON rows and the suspect cameras."""
+    pairs = agreement_rows(results, used_frames)
+    suspects = suspect_cameras(results)
+    if results:
+        log.info("calibration check (%d frames)\n%s", used_frames, format_agreement(results, **check_thresholds(pcfg)))
+    for p in pairs:
+        if p["flagged"]:
+            log.warning("cameras %s and %s disagree by %.1f+-%.1f mm / %.2f+-%.2f deg: check the calibration",
+                        p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["translation_sigma_mm"],
+                        p["correction_rotation_deg"], p["rotation_sigma_deg"])
+    if suspects:
+        log.warning("CHECK CALIBRATION of camera(s): %s", ", ".join(suspects))
+    return pairs, suspects
+
+
+def check_thresholds(pcfg) -> dict:
+    return {"warn_mm": pcfg.calib_warn_mm, "warn_deg": pcfg.calib_warn_deg, "k_sigma": pcfg.calib_k_sigma}
+
+
 def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     """Run the prepare stage; returns the figures that go into metrics.json."""
     pcfg = cfg.prepare
     stage_dir = Path(out_dir) / "prepare"
-    cameras = Cameras.from_infos(session.cameras, dtype=torch.float32)
+    (stage_dir / REFINED_CALIBRATION.name).unlink(missing_ok=True)  # a killed earlier run's; decided again below
+    clouds = ViewClouds(session, Cameras.from_infos(session.cameras, dtype=torch.float32), pcfg)
+    checked = spread_frames(session.frame_ids, pcfg.calib_frames)
+    results, used_frames = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
+    pairs, suspects = report_check(results, used_frames, pcfg)
+    check = {"frames": [int(f) for f in checked], "pairs": pairs, **check_thresholds(pcfg),
+             "flagged": [p for p in pairs if p["flagged"]], "suspect_cameras": suspects}
+    refined = {"calibration_refined": False}
+    if pcfg.calib_refine == "always" or (pcfg.calib_refine == "auto" and check["flagged"]):
+        refined = refine_cameras(session, clouds, stage_dir, pcfg, progress)
+    if refined["calibration_refined"]:  # the check again, and everything after it, with the refined poses
+        clouds = ViewClouds(session, Cameras.from_infos(session.cameras, dtype=torch.float32), pcfg)
+        log.info("the calibration check again, with the refined poses")
+        after, _ = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
+        after_pairs, after_suspects = report_check(after, used_frames, pcfg)
+        check["after_refinement"] = {"pairs": after_pairs, "flagged": [p for p in after_pairs if p["flagged"]],
+                                     "suspect_cameras": after_suspects}
+    write_json(stage_dir / "calibration_check.json", check)
 
-    clouds = ViewClouds(session, cameras, pcfg)
     try:
         plane, source = estimate_ground(session, clouds, pcfg, progress)
     except ValueError as error:  # no floor in view: the global stage takes up from the object's free flight
@@ -140,56 +245,20 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
         write_json(stage_dir / "ground.json", {**plane.to_dict(), "source": source})
         log.info("ground plane (%s): normal %s, rmse %.1f mm", source, np.round(plane.normal, 4), plane.rmse_m * 1e3)
 
-    names = [c.name for c in session.cameras]
-    centers = cameras.centers.numpy()
-    checked = spread_frames(session.frame_ids, pcfg.calib_frames)
-    # Per camera, its cloud of each checked frame: frames are matched only with themselves (the
-    # person moves), and the person and object in several poses constrain what the floor leaves free.
-    fused = [[] for _ in names]
-    used_frames = 0
-    for frame_id in tqdm(checked, desc="prepare: calibration check", disable=not progress):
-        views = clouds.frame(int(frame_id))
-        if pcfg.save_clouds:
-            write_point_cloud_ply(
-                stage_dir / "clouds" / f"{int(frame_id):06d}.ply",
-                np.concatenate([v["points"] for v in views]),
-                np.concatenate([v["colors"] for v in views]),
-            )
-        if sum(len(v["points"]) > 0 for v in views) < 2:
-            continue
-        if any(len(v["points"]) == 0 for v in views):  # a dropped view: keep the frame, without its points
-            views = [v if len(v["points"]) else {"points": np.zeros((0, 3))} for v in views]
-        used_frames += 1
-        for c, v in enumerate(views):
-            fused[c].append(v["points"])
-    results = []
-    if used_frames:
-        results = check_views(fused, names, centers, pcfg)
-    pairs = agreement_rows(results, used_frames)
-    flagged = [p for p in pairs if p["flagged"]]
-    suspects = suspect_cameras(results)
-    warn = {"warn_mm": pcfg.calib_warn_mm, "warn_deg": pcfg.calib_warn_deg, "k_sigma": pcfg.calib_k_sigma}
-    write_json(stage_dir / "calibration_check.json", {"frames": [int(f) for f in checked], "pairs": pairs,
-                                                      **warn, "flagged": flagged, "suspect_cameras": suspects})
-    if results:
-        log.info("calibration check (%d frames)\n%s", used_frames, format_agreement(results, **warn))
-    for p in flagged:
-        log.warning("cameras %s and %s disagree by %.1f+-%.1f mm / %.2f+-%.2f deg: check the calibration",
-                    p["cam_a"], p["cam_b"], p["correction_translation_mm"], p["translation_sigma_mm"],
-                    p["correction_rotation_deg"], p["rotation_sigma_deg"])
-    if suspects:
-        log.warning("CHECK CALIBRATION of camera(s): %s", ", ".join(suspects))
-
     corrections = [p["correction_translation_mm"] for p in pairs if np.isfinite(p["correction_translation_mm"])]
-    return {
+    figures = {
         "ground_source": source,
         **({"ground_fallback": GRAVITY_FALLBACK} if plane is None else {}),
         "ground_rmse_mm": plane.rmse_m * 1e3 if plane is not None else None,
         "ground_inlier_ratio": plane.inlier_ratio if plane is not None else None,
         "calibration_max_correction_mm": max(corrections) if corrections else None,
-        "calibration_pairs_flagged": len(flagged),
+        "calibration_pairs_flagged": len(check["flagged"]),
         "calibration_suspect_cameras": suspects,
+        **refined,
     }
+    if "after_refinement" in check:
+        figures["calibration_pairs_flagged_after_refinement"] = len(check["after_refinement"]["flagged"])
+    return figures
 
 
 def load_ground(out_dir: Path) -> GroundPlane:

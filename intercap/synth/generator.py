@@ -76,6 +76,7 @@ class SynthConfig:
     depth_max: float = 5.0  # metres; Azure Kinect NFOV binned reaches 5.46
     edge_jump: float = 0.04  # depth step (metres, + 2 % of depth) that counts as a discontinuity
     edge_drop: float = 0.5  # fraction of edge pixels lost
+    flying_pixels: float = 0.0  # fraction of the edge pixels that read a mix of the two sides' depths (time of flight)
     dark_threshold: float = 45.0  # luminance (0..255) below which surfaces are dark
     dark_drop: float = 0.4  # fraction of dark pixels lost
     holes: float = 1.5  # mean number of random holes per image
@@ -427,6 +428,24 @@ def depth_edges(depth: np.ndarray, jump: float) -> np.ndarray:
     return edge & valid
 
 
+def flying_pixels(depth: np.ndarray, rng: np.random.Generator, jump: float, fraction: float) -> np.ndarray:
+    """Depth (H, W) metres with `fraction` of the pixels beside a discontinuity (`depth_edges`' step)
+    moved between the two sides: a time-of-flight pixel that sees both surfaces reads a mix of
+    their depths (a "flying pixel"), a random share of each, along its own ray."""
+    H, W = depth.shape
+    valid = depth > 0
+    padded = np.pad(depth, 1)
+    step, across = np.zeros_like(depth), depth.copy()
+    for dy, dx in ((0, 1), (0, -1), (1, 0), (-1, 0)):
+        other = padded[1 + dy:1 + dy + H, 1 + dx:1 + dx + W]
+        jumps = np.where(valid & (other > 0), np.abs(other - depth), 0.0)
+        larger = jumps > step
+        step, across = np.where(larger, jumps, step), np.where(larger, other, across)
+    flying = (step > jump + 0.02 * np.maximum(depth, across)) & (rng.random(depth.shape) < fraction)
+    share = rng.uniform(0.1, 0.9, depth.shape)
+    return np.where(flying, share * depth + (1 - share) * across, depth)
+
+
 def kinect_depth(depth: np.ndarray, colour: np.ndarray, rng: np.random.Generator, cfg: SynthConfig) -> np.ndarray:
     """Clean depth (H, W) metres -> Kinect-like uint16 millimetres (0 = no measurement).
 
@@ -437,6 +456,8 @@ def kinect_depth(depth: np.ndarray, colour: np.ndarray, rng: np.random.Generator
     H, W = depth.shape
     valid = (depth > cfg.depth_min) & (depth < cfg.depth_max)
     z = depth + rng.normal(0.0, 1.0, depth.shape) * (cfg.depth_sigma_base + cfg.depth_sigma_quad * depth**2)
+    if cfg.flying_pixels > 0:
+        z = flying_pixels(z, rng, cfg.edge_jump, cfg.flying_pixels)
     radius = max(1, int(round(W / 320)))
     edge = cv2.dilate(depth_edges(depth, cfg.edge_jump).astype(np.uint8), np.ones((2 * radius + 1,) * 2, np.uint8)) > 0
     lost = edge & (rng.random(depth.shape) < cfg.edge_drop)
@@ -859,6 +880,8 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     parser.add_argument("--color-format", choices=["jpg", "png"], default=None)
     parser.add_argument("--depth-sigma", type=_floats, default=None, help="base,quad: sigma = base + quad * z^2 (metres)")
     parser.add_argument("--clean-depth", action="store_true", default=None, help="write noise-free depth")
+    parser.add_argument("--flying-pixels", type=float, default=None,
+                        help="fraction of the pixels at depth edges reading a mix of both sides (default 0)")
     parser.add_argument("--no-walls", action="store_true", default=None)
     parser.add_argument("--no-keypoints", action="store_true", default=None)
     parser.add_argument("--no-masks", action="store_true", default=None)
@@ -884,7 +907,7 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
     changes = {}
     simple = ["script", "object", "frames", "fps", "seed", "phenotype", "cameras", "width", "height", "focal_scale",
               "ring_radius", "ring_height", "look_at", "dist", "color_format", "clean_depth", "drop_rate", "drop_view",
-              "annotate", "ik_iters", "threads", "quiet", "appearance", "light", "flight_turns"]
+              "annotate", "ik_iters", "threads", "quiet", "appearance", "light", "flight_turns", "flying_pixels"]
     for name in simple:
         value = getattr(args, name, None)
         if value is not None:

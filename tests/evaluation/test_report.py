@@ -111,6 +111,23 @@ def test_report_on_a_partial_results_folder(session_dir, tmp_path):
     assert "session folder unknown" in _section(html, "summary")
 
 
+def test_report_shows_the_refined_calibration(tmp_path):
+    """When prepare refined the cameras' poses, the calibration section says so: each camera's
+    correction and the check again with the refined poses."""
+    out = tmp_path / "out"
+    (out / "prepare").mkdir(parents=True)
+    pair = {"cam_a": "cam0", "cam_b": "cam1", "correction_translation_mm": 24.2, "flagged": True}
+    (out / "prepare" / "calibration_check.json").write_text(json.dumps({
+        "frames": [0], "warn_mm": 6.0, "pairs": [pair], "flagged": [pair],
+        "after_refinement": {"pairs": [{**pair, "correction_translation_mm": 3.7, "flagged": False}], "flagged": []}}))
+    (out / "prepare" / "calibration_refined.json").write_text(json.dumps({"cameras": [], "corrections": [
+        {"name": "cam0", "moved_mm": 7.48, "turned_deg": 0.182}, {"name": "cam1", "moved_mm": 6.68, "turned_deg": 0.163}]}))
+    calibration = _section(write_report(out, progress=False).read_text(), "calibration")
+    assert "1 camera pair(s) disagree" in calibration and "were refined" in calibration
+    assert "<td>7.48</td>" in calibration and "<td>3.7</td>" in calibration
+    assert "no camera pair flagged after refining" in calibration
+
+
 def test_report_from_ground_truth(session_dir, tmp_path):
     out = results_from_ground_truth(session_dir, tmp_path / "out")
     path = write_report(out, session=session_dir, gt=session_dir, cfg=_cfg(), progress=False)

@@ -20,6 +20,7 @@ from intercap.synth.generator import (
     build_arg_parser,
     config_from_args,
     distort_normalized,
+    flying_pixels,
     generate_session,
     kinect_depth,
     look_at_pose,
@@ -288,6 +289,24 @@ def test_kinect_depth_noise_and_dropouts():
     assert (mm[20:, 78:82] == 0).mean() > 0.3  # edge pixels lost
     assert (mm[40:, 10:70] == 0).mean() < 0.01
     assert (mm[:20, 10:70] == 0).mean() > 0.25  # dark pixels lost
+
+
+def test_flying_pixels_lie_between_the_two_sides_of_an_edge():
+    """A time-of-flight pixel on a depth edge reads a mix of both surfaces: with every edge pixel
+    flying, the two columns beside a 2 m -> 3 m step read depths strictly between them, and nothing
+    away from the edge moves; with none, the depth is unchanged."""
+    depth = np.full((60, 80), 2.0)
+    depth[:, 40:] = 3.0
+    depth[:5, :5] = 0.0  # no measurement: never mixed
+    mixed = flying_pixels(depth, np.random.default_rng(1), jump=0.04, fraction=1.0)
+    edge = mixed[:, 39:41]
+    assert ((edge > 2.0) & (edge < 3.0)).all() and 2.3 < edge.mean() < 2.7
+    away = np.ones_like(depth, bool)
+    away[:, 39:41] = False
+    assert np.array_equal(mixed[away], depth[away])
+    assert np.array_equal(flying_pixels(depth, np.random.default_rng(1), 0.04, 0.0), depth)
+    args = build_arg_parser().parse_args(["OUT", "--flying-pixels", "0.5"])
+    assert config_from_args(args).flying_pixels == 0.5
 
 
 def test_deterministic_npz_and_cli(tmp_path):

@@ -484,18 +484,18 @@ class RigRefinement:
 
 def geometric_median(x: np.ndarray, iterations: int = 50) -> np.ndarray:
     """The point (D,) nearest to all rows of x (N, D) in summed distance (Weiszfeld's iteration)."""
-    return huber_centre(x, 0.0, iterations)
-
-
-def huber_centre(x: np.ndarray, scale: float, iterations: int = 50) -> np.ndarray:
-    """Huber's centre (D,) of the rows of x (N, D): their mean while all lie within `scale` of it; a
-    row further out counts by its direction only (reweighted), so one far row does not drag it.
-    scale 0: the geometric median."""
     m = x.mean(axis=0)
     for _ in range(iterations):
-        w = np.minimum(1.0, max(scale, 1e-9) / np.maximum(np.linalg.norm(x - m, axis=1), 1e-12))
+        w = 1.0 / np.maximum(np.linalg.norm(x - m, axis=1), 1e-12)
         m = (w[:, None] * x).sum(axis=0) / w.sum()
     return m
+
+
+def consensus(x: np.ndarray, k: float = 3.0, floor: float = 1e-3) -> np.ndarray:
+    """The centre (D,) of the rows x (N, D) that agree: the mean of those within `k` x the rows'
+    median distance (at least `floor`) of their geometric median; one far row is left out."""
+    distance = np.linalg.norm(x - geometric_median(x), axis=1)
+    return x[distance <= max(k * float(np.median(distance)), floor)].mean(axis=0)
 
 
 def refine_rig(
@@ -521,9 +521,9 @@ def refine_rig(
     depth noise; tools/bench_calibration_refine); it grows with the square of a correction's length
     (scaled twist, metres) up to `linear_beyond_m` and linearly beyond, so one camera that needs a
     large correction gets it instead of the error being shared out. Moving every camera together changes no residual,
-    so the world frame is chosen: the corrections' Huber centre (`linear_beyond_m`) is none. Small
-    errors spread over all cameras average out (the mean: the world the fits saw before); one bumped
-    camera of a rig, far from the rest, is moved back to the others, which keep their poses."""
+    so the world frame is chosen: the corrections' `consensus` is none. Errors spread over all
+    cameras average out (the mean: the world the fits saw before); one bumped camera of a rig, far
+    from the rest, is moved back to the others, which keep their poses."""
     per_frame = [[p] if isinstance(p, np.ndarray) else list(p) for p in points_per_view]
     C = len(per_frame)
     if C != len(names) or len({len(p) for p in per_frame}) > 1:
@@ -578,7 +578,7 @@ def refine_rig(
             T = np.stack([twist_transform(x, centre, radius) for x in X])
             if np.abs(step).max() < tolerance_m:
                 break
-        X -= huber_centre(X, linear_beyond_m)  # the data see no common motion: see the docstring
+        X -= consensus(X)  # the data see no common motion: see the docstring
         T = np.stack([twist_transform(x, centre, radius) for x in X])
         after = [s for s in pool.map(pair_system, pairs) if s is not None]
     moved_turned = np.array([correction_size(t, centre) for t in T]).reshape(C, 2)

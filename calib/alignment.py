@@ -315,6 +315,14 @@ def _sigma_along(cov3: np.ndarray, v: np.ndarray) -> float:
     return float(np.sqrt(max(u @ cov3 @ u, 0.0)))
 
 
+def view_frames(pool, per_frame: list, names: list[str], centers: np.ndarray, voxel_size: float,
+                plane_radius: float) -> list[list[_ViewFrame]]:
+    """Per view, its frames' points with their tangent planes (`_view_frame`), built in `pool`'s threads."""
+    futures = [[pool.submit(_view_frame, p, voxel_size, plane_radius, name, centre) for p in view]
+               for view, name, centre in zip(per_frame, names, centers)]
+    return [[f.result() for f in view] for view in futures]
+
+
 def pair_agreement(
     source: list[_ViewFrame],
     target: list[_ViewFrame],
@@ -455,9 +463,7 @@ def check_calibration(
     centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
     # views x frames, then pairs, in threads: k-d trees, LAPACK and large numpy loops let go of the GIL
     with ThreadPoolExecutor(max(1, min(os.cpu_count() or 1, len(names) * len(per_frame[0])))) as pool:
-        frames = [[pool.submit(_view_frame, p, voxel_size, plane_radius, name, centre) for p in view]
-                  for view, name, centre in zip(per_frame, names, centers)]
-        frames = [[f.result() for f in view] for view in frames]
+        frames = view_frames(pool, per_frame, names, centers, voxel_size, plane_radius)
         agreements = [pool.submit(pair_agreement, frames[a], frames[b], names[a], names[b], max_distance,
                                   min_constraint=min_constraint, block_size=block_size, k_sigma=k_sigma,
                                   min_mm=min_mm, min_deg=min_deg, iterations=iterations) for a, b in pairs]
@@ -532,10 +538,7 @@ def refine_rig(
     centers = np.asarray(camera_centers, dtype=np.float64).reshape(-1, 3)
     workers = max(1, min(os.cpu_count() or 1, C * len(per_frame[0])))
     with ThreadPoolExecutor(workers) as pool:
-        frames = [pool.map(_view_frame, view, [voxel_size] * len(view), [plane_radius] * len(view),
-                           [name] * len(view), [centre] * len(view))
-                  for view, name, centre in zip(per_frame, names, centers)]
-        frames = [list(view) for view in frames]
+        frames = view_frames(pool, per_frame, names, centers, voxel_size, plane_radius)
         everything = np.concatenate([f.points for view in frames for f in view] or [np.zeros((1, 3))])
         centre = everything.mean(axis=0)
         radius = max(float(np.sqrt(((everything - centre) ** 2).sum(axis=1).mean())), 1e-3)

@@ -199,6 +199,7 @@ def test_a_body_evaluation_never_waits_on_the_gpu(model, sample, monkeypatch, sh
     graph (`gradient_evaluator`), whether the phenotype is held or fitted: it issues no operation
     that waits on the GPU. The correspondence refresh between steps may."""
     cameras, cfg, params, _, frames, obs = frames_0_and_2(sample)
+    cfg = dataclasses.replace(cfg, orient_steps=2, pose_steps=2, full_steps=2, inner_iterations=4)
     fitter = body.BodyFitter(model, cameras, cfg)
     if shape_held:
         fitter.held_shape = params.shape[0].clone()

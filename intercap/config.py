@@ -233,6 +233,11 @@ class GlobalConfig:
     # per-frame body was fitted to the person's own points (no masks): it is not trusted here. Right poses
     # stayed at or under 0.03 on eight sessions, wrong ones (a turn, no masks) had a median of 0.29.
     object_inside_body_share: float = 0.1
+    # The acceleration terms and priors assume session.yaml's fps is the rate of the frames given. When
+    # the joint fit raises the keypoints' energy more than this many times, the data and the motion terms
+    # disagree, as when a take's frames were thinned (every 5th of 30 fps) but it still says 30 fps (x6.2,
+    # body 11 -> 49 mm; x1.0-1.6 on six right takes): a warning says so. 0 turns it off.
+    max_keypoint_energy_ratio: float = 3.0
     w_object: float = 3.0e7  # E_O (mean over a frame's points, metres^2)
     w_object_anchor: float = 1.0e8  # the tracked (rendered silhouette + depth) pose x its confidence: measured more exact than E_O alone
     w_interpenetration: float = 3.0e6  # E_P (sum over body vertices)

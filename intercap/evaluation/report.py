@@ -598,7 +598,8 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     _advance(bar, steps)
     page.add("penetration", "Penetration", _penetration_section(stages, frames, fids, surface, out_dir, gt))
     _advance(bar, steps)
-    page.add("motion", "Motion (acceleration)", _motion_section(stages, frames, fids, fps, mesh, gt))
+    page.add("motion", "Motion (acceleration)", fit_against_data_warning(metrics.get("global") or {}, cfg, fps)
+             + _motion_section(stages, frames, fids, fps, mesh, gt))
     _advance(bar, steps)
     physics = _npz(out_dir / "physics" / "physics.npz")
     if physics is None:
@@ -876,6 +877,17 @@ def _penetration_section(stages, frames, fids, surface, out_dir, gt) -> str:
     parts.append(figure_html(fig, "penetration CDF"))
     parts.append(table(rows))
     return "".join(parts)
+
+
+def fit_against_data_warning(global_metrics: dict, cfg, fps: float) -> str:
+    """A warning paragraph when the joint fit raised the keypoints' energy past
+    `global.max_keypoint_energy_ratio` (the motion terms and the data disagree: often a wrong fps)."""
+    ratio, limit = global_metrics.get("keypoint_energy_ratio"), cfg.global_.max_keypoint_energy_ratio
+    if ratio is None or limit <= 0 or ratio <= limit:
+        return ""
+    return (f'<p class="warn">The joint fit moved the body away from its keypoints (their energy x{ratio:.1f}): the '
+            f"motion terms and the data disagree. Is session.yaml's fps ({fps:g}) the rate of the frames given? If "
+            "frames were skipped, set it to theirs.</p>")
 
 
 def _motion_section(stages, frames, fids, fps, mesh, gt) -> str:

@@ -655,8 +655,27 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     figures = write_outputs(session, problem.model, fitted, R_all, centre_all, problem.shape, problem.per_frame,
                             seconds, history, out_dir, problem.observations, problem.cameras, cfg,
                             problem.fitter.weight)
+    before, after = (figures.get(f"energy_{when}", {}).get("body_keypoints", 0.0) for when in ("before", "after"))
+    ratio = after / before if before > 0 else 1.0
+    speed = pelvis_speed_p90(out_dir, session.fps)
+    if g.max_keypoint_energy_ratio > 0 and ratio > g.max_keypoint_energy_ratio:
+        log.warning("global: the joint fit moved the body away from its keypoints (their energy x%.1f): the "
+                    "motion terms and the data disagree. Is session.yaml's fps (%g) the rate of the frames given? "
+                    "If frames were skipped, set it to theirs (the per-frame pelvis moves %.1f m/s at the 90th "
+                    "percentile at %g fps)", ratio, session.fps, speed, session.fps)
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
-            "workers": len(chunks)}
+            "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio}
+
+
+def pelvis_speed_p90(out_dir: Path, fps: float) -> float:
+    """90th percentile of the per-frame body's pelvis (BODY_25 mid-hip) speed between consecutive
+    fitted frames, m/s at `fps`; 0 when there are no two."""
+    path = per_frame_result(out_dir, "body", "keypoints3d.npy")
+    if not path.exists():
+        return 0.0
+    speeds = np.linalg.norm(np.diff(np.load(path, mmap_mode="r")[:, 8], axis=0), axis=1) * fps
+    speeds = speeds[np.isfinite(speeds)]
+    return float(np.percentile(speeds, 90)) if len(speeds) else 0.0
 
 
 def object_shape(session, g, out_dir: Path) -> ObjectShape:

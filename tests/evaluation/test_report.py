@@ -188,3 +188,14 @@ def test_pipeline_writes_the_report_and_survives_its_failure(tiny_session, tmp_p
     off = tmp_path / "out3"
     run_pipeline(tiny_session, off, load_config(None, ["report.enabled=false"]), stages=["detect"], progress=False)
     assert not (off / "report").exists()
+
+
+def test_report_warns_when_the_joint_fit_left_the_keypoints(tmp_path):
+    """A joint fit that raised the keypoints' energy six times (a thinned take still saying 30 fps)
+    gets a warning in the motion section naming the frame rate; an ordinary one (x1.2) none."""
+    for ratio, warned in ((6.2, True), (1.2, False)):
+        out = tmp_path / f"out{ratio}"
+        out.mkdir()
+        (out / "metrics.json").write_text(json.dumps({"global": {"keypoint_energy_ratio": ratio}}))
+        motion = _section(write_report(out, progress=False).read_text(), "motion")
+        assert ("energy x6.2" in motion and "fps (30)" in motion) == warned, motion

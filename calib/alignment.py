@@ -477,8 +477,7 @@ class RigRefinement:
     corrections: (C, 4, 4) world-frame transforms, T_world_from_cam <- correction @ T_world_from_cam;
     moved_mm / turned_deg: (C,) how far each correction moves the clouds' centre, and its angle;
     pairs: ordered view pairs that overlapped; iterations: Gauss-Newton steps taken;
-    residual_before_mm / residual_after_mm: weighted RMS point-to-plane residual of all pairs;
-    world_kept_by: "consensus", or the world camera's name when it was held where it is."""
+    residual_before_mm / residual_after_mm: weighted RMS point-to-plane residual of all pairs."""
 
     corrections: np.ndarray
     moved_mm: np.ndarray
@@ -487,7 +486,6 @@ class RigRefinement:
     iterations: int
     residual_before_mm: float
     residual_after_mm: float
-    world_kept_by: str = "consensus"
 
 
 def geometric_median(x: np.ndarray, iterations: int = 50) -> np.ndarray:
@@ -499,16 +497,11 @@ def geometric_median(x: np.ndarray, iterations: int = 50) -> np.ndarray:
     return m
 
 
-def agreeing_rows(x: np.ndarray, k: float = 3.0, floor: float = 1e-3) -> np.ndarray:
-    """(N,) bool: the rows of x (N, D) within `k` x the rows' median distance (at least `floor`)
-    of their geometric median; one far row is left out."""
-    distance = np.linalg.norm(x - geometric_median(x), axis=1)
-    return distance <= max(k * float(np.median(distance)), floor)
-
-
 def consensus(x: np.ndarray, k: float = 3.0, floor: float = 1e-3) -> np.ndarray:
-    """The centre (D,) of the rows x (N, D) that agree: the mean of the `agreeing_rows`."""
-    return x[agreeing_rows(x, k, floor)].mean(axis=0)
+    """The centre (D,) of the rows x (N, D) that agree: the mean of those within `k` x the rows'
+    median distance (at least `floor`) of their geometric median; one far row is left out."""
+    distance = np.linalg.norm(x - geometric_median(x), axis=1)
+    return x[distance <= max(k * float(np.median(distance)), floor)].mean(axis=0)
 
 
 def refine_rig(
@@ -523,7 +516,6 @@ def refine_rig(
     linear_beyond_m: float = 0.006,
     min_overlap: int = 200,
     tolerance_m: float = 2e-5,
-    world_camera: int | None = None,
 ) -> RigRefinement:
     """Correct all cameras' poses at once so their clouds agree (the check only measures pairs).
 
@@ -537,10 +529,7 @@ def refine_rig(
     large correction gets it instead of the error being shared out. Moving every camera together changes no residual,
     so the world frame is chosen: the corrections' `consensus` is none. Errors spread over all
     cameras average out (the mean: the world the fits saw before); one bumped camera of a rig, far
-    from the rest, is moved back to the others, which keep their poses. A rig whose world frame is one
-    of its cameras (`world_camera`, its index) keeps that camera where it is, unless it is the one
-    far from the rest: its pose is the world, exact by definition, and the others' calibration errors
-    are relative to it."""
+    from the rest, is moved back to the others, which keep their poses."""
     per_frame = [[p] if isinstance(p, np.ndarray) else list(p) for p in points_per_view]
     C = len(per_frame)
     if C != len(names) or len({len(p) for p in per_frame}) > 1:
@@ -592,16 +581,13 @@ def refine_rig(
             T = np.stack([twist_transform(x, centre, radius) for x in X])
             if np.abs(step).max() < tolerance_m:
                 break
-        # the data see no common motion: the world frame is chosen (see the docstring)
-        pinned = world_camera is not None and bool(agreeing_rows(X)[world_camera])
-        X -= X[world_camera] if pinned else consensus(X)
+        X -= consensus(X)  # the data see no common motion: see the docstring
         T = np.stack([twist_transform(x, centre, radius) for x in X])
         after = [s for s in pool.map(pair_system, pairs) if s is not None]
     moved_turned = np.array([correction_size(t, centre) for t in T]).reshape(C, 2)
     return RigRefinement(corrections=T, moved_mm=moved_turned[:, 0], turned_deg=moved_turned[:, 1], pairs=used,
                          iterations=steps, residual_before_mm=residuals[0] * 1000 if residuals else float("nan"),
-                         residual_after_mm=float(np.mean([s[4] for s in after])) * 1000 if after else float("nan"),
-                         world_kept_by=names[world_camera] if pinned else "consensus")
+                         residual_after_mm=float(np.mean([s[4] for s in after])) * 1000 if after else float("nan"))
 
 
 def suspect_cameras(results: list[PairAgreement]) -> list[str]:

@@ -7,10 +7,7 @@ moved as a wrong T_world_from_cam would move them, and `refine_rig` runs as prep
   exact        no drift (what refining a good rig costs);
   one camera   one camera turned `--one-deg` about its own centre and moved `--one-mm` (a bumped camera);
   all cameras  every camera turned `--all-deg` and moved `--all-mm` (a rig calibrated a little wrong
-               everywhere), the common part taken out (the data cannot see it: the world frame itself);
-  all but the world  on a rig whose world is one of its cameras (BEHAVE, InterCap): every other camera
-               off as above, the common part kept (it is relative to the world camera, which refine_rig
-               then keeps; `common` shows whether it was taken out).
+               everywhere), the common part taken out (the data cannot see it: the world frame itself).
 Each camera's error is where it puts the subject (the clouds' centre) against where it is. Printed per
 case: how far the cameras' displacements of the subject lie from the one most of them agree on (`apart`,
 what the fits feel: views that disagree), that common displacement (`common`, a shift of the whole
@@ -38,9 +35,8 @@ def subject_errors(errors: np.ndarray, subject: np.ndarray) -> tuple[float, floa
     return float(apart * 1000), float(np.linalg.norm(common) * 1000), max(rotation_angle_deg(E[:3, :3]) for E in errors)
 
 
-def drifts(case: str, C: int, centers: np.ndarray, seed: int, args, world: int | None = None) -> np.ndarray:
-    """(C, 4, 4) world-frame errors of the cameras' poses for `case`; "all but the world": every camera
-    but the `world` one (a rig calibrated relative to it) off, with whatever common part that gives."""
+def drifts(case: str, C: int, centers: np.ndarray, seed: int, args) -> np.ndarray:
+    """(C, 4, 4) world-frame errors of the cameras' poses for `case`."""
     from intercap.calib.alignment import scaled_twist, twist_transform
     from tools.bench_calibration_check import drift_transform
 
@@ -53,16 +49,12 @@ def drifts(case: str, C: int, centers: np.ndarray, seed: int, args, world: int |
         centre, radius = np.zeros(3), 1.0  # the common part out, so the truth is the world frame the data can see
         x = np.stack([scaled_twist(t, centre, radius) for t in T])
         T = np.stack([twist_transform(v, centre, radius) for v in x - x.mean(axis=0)])
-    elif case == "all but the world":
-        for c in set(range(C)) - {world}:
-            T[c] = drift_transform(args.all_deg, args.all_mm, seed=100 * seed + c, pivot=centers[c])
     return T
 
 
 def main(argv=None) -> None:
     from intercap.calib.alignment import refine_rig
     from intercap.config import PrepareConfig
-    from intercap.session.format import world_camera
     from tools.bench_calibration_check import load_views
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -77,28 +69,26 @@ def main(argv=None) -> None:
     args = parser.parse_args(argv)
     cfg = PrepareConfig()
 
-    print(f"{'session':<28} {'case':<17} {'seed':>4} {'apart mm':>16} {'common mm':>16} {'max deg':>14} {'s':>6}")
+    print(f"{'session':<28} {'case':<14} {'seed':>4} {'apart mm':>16} {'common mm':>16} {'max deg':>14} {'s':>6}")
     for session_dir in args.sessions:
         session, centers, per_view = load_views(session_dir, args.frames)
         names = [c.name for c in session.cameras]
         subject = np.concatenate([np.concatenate(v) for v in per_view]).mean(axis=0)
-        world = world_camera(session.cameras)  # a camera-as-world rig: its errors are relative to that camera
-        for case in ("exact", "one camera", "all cameras" if world is None else "all but the world"):
+        for case in ("exact", "one camera", "all cameras"):
             for seed in range(1 if case == "exact" else args.seeds):
-                wrong = drifts(case, len(names), centers, seed, args, world)
+                wrong = drifts(case, len(names), centers, seed, args)
                 moved = [[f @ W[:3, :3].T + W[:3, 3] for f in view] for view, W in zip(per_view, wrong)]
                 start = time.perf_counter()
                 result = refine_rig(moved, names, centers, max_distance=cfg.icp_max_distance_m,
                                     voxel_size=max(2 * cfg.voxel_size_m, 0.02), iterations=cfg.calib_refine_iterations,
-                                    prior=args.prior, linear_beyond_m=cfg.calib_refine_linear_beyond_m,
-                                    world_camera=world)
+                                    prior=args.prior, linear_beyond_m=cfg.calib_refine_linear_beyond_m)
                 seconds = time.perf_counter() - start
                 before = subject_errors(wrong, subject)
                 after = subject_errors(result.corrections @ wrong, subject)
                 pairs = " -> ".join(f"{b:5.1f}" for b in (before[0], after[0]))
                 common = " -> ".join(f"{b:5.1f}" for b in (before[1], after[1]))
                 deg = " -> ".join(f"{b:4.2f}" for b in (before[2], after[2]))
-                print(f"{str(session_dir)[-28:]:<28} {case:<17} {seed:>4} {pairs:>16} {common:>16} {deg:>14} {seconds:6.1f}",
+                print(f"{str(session_dir)[-28:]:<28} {case:<14} {seed:>4} {pairs:>16} {common:>16} {deg:>14} {seconds:6.1f}",
                       flush=True)
 
 

@@ -145,14 +145,6 @@ def _npz(path: Path) -> dict | None:
         return None
 
 
-def world_kept_by_sentence(kept_by: str) -> str:
-    """How the refinement chose the world frame, which the depth cannot see, for a person."""
-    if kept_by == "consensus":
-        return ("The world frame stays where the cameras' corrections agree on it (their mean, a camera far from "
-                "the others left out).")
-    return f"The world frame is camera {html.escape(kept_by)}'s, which stays where it is."
-
-
 def _json(path: Path):
     try:
         return json.loads(path.read_text()) if path.is_file() else None
@@ -560,8 +552,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
         if refined is not None and after is not None:
             still = after.get("flagged") or []
             msg += ("<p>The cameras' poses were refined so all views' depth agrees (prepare.calib_refine); "
-                    "every later stage used them (OUT/prepare/calibration_refined.json, a calibration.json). "
-                    + world_kept_by_sentence(refined.get("world_kept_by", "consensus")) + "</p>"
+                    "every later stage used them (OUT/prepare/calibration_refined.json, a calibration.json):</p>"
                     + table(refined.get("corrections") or [], ["name", "moved_mm", "turned_deg"])
                     + "<p>The check again with the refined poses:</p>"
                     + table(after.get("pairs") or [], [c for c in cols if any(c in p for p in after.get("pairs") or [])])

@@ -82,15 +82,6 @@ class CameraInfo:
         return self.T_world_from_cam[:3, 3].copy()
 
 
-def world_camera(cameras: list[CameraInfo], tolerance: float = 1e-5) -> int | None:
-    """The index of the camera whose pose is the identity (the rig's world frame is that camera's,
-    as in BEHAVE, InterCap and most Kinect rigs), or None."""
-    for i, cam in enumerate(cameras):
-        if np.abs(np.asarray(cam.T_world_from_cam) - np.eye(4)).max() <= tolerance:
-            return i
-    return None
-
-
 @dataclass
 class ObjectInfo:
     """The rigid object of the session (mesh in metres, object coordinates)."""

@@ -28,7 +28,6 @@ from intercap.geometry.ground import GroundPlane, fit_ground_plane, up_hint_from
 from intercap.geometry.pointclouds import fuse_points
 from intercap.io.files import write_json, write_point_cloud_ply
 from intercap.io.importing import camera_entry
-from intercap.session.format import world_camera
 from intercap.session.session import REFINED_CALIBRATION
 
 log = logging.getLogger(__name__)
@@ -170,8 +169,7 @@ def refine_cameras(session, clouds: ViewClouds, stage_dir: Path, pcfg, progress:
     names = session.camera_names
     result = refine_rig(per_view, names, clouds.cameras.centers.numpy(), max_distance=pcfg.icp_max_distance_m,
                         voxel_size=max(2 * pcfg.voxel_size_m, 0.02), iterations=pcfg.calib_refine_iterations,
-                        prior=pcfg.calib_refine_prior, linear_beyond_m=pcfg.calib_refine_linear_beyond_m,
-                        world_camera=world_camera(session.cameras))
+                        prior=pcfg.calib_refine_prior, linear_beyond_m=pcfg.calib_refine_linear_beyond_m)
     cameras = [dataclasses.replace(c, T_world_from_cam=T @ c.T_world_from_cam)
                for c, T in zip(session.cameras, result.corrections)]
     rows = [{"name": c.name, "moved_mm": round(float(mm), 2), "turned_deg": round(float(deg), 3)}
@@ -181,16 +179,15 @@ def refine_cameras(session, clouds: ViewClouds, stage_dir: Path, pcfg, progress:
                  "views' depth agrees (calibration_check.json: before and after)",
         "cameras": [camera_entry(c.name, c.width, c.height, c.K, c.dist, c.T_world_from_cam) for c in cameras],
         "corrections": rows, "frames": [int(f) for f in frames], "pairs": result.pairs,
-        "world_kept_by": result.world_kept_by, "iterations": result.iterations,
-        "residual_before_mm": result.residual_before_mm,
+        "iterations": result.iterations, "residual_before_mm": result.residual_before_mm,
         "residual_after_mm": result.residual_after_mm,
     })
     session.cameras = cameras
-    log.info("calibration refined on %d frames (%d view pairs, %d steps; residual %.2f -> %.2f mm; world kept by %s): %s",
-             used, result.pairs, result.iterations, result.residual_before_mm, result.residual_after_mm, result.world_kept_by,
+    log.info("calibration refined on %d frames (%d view pairs, %d steps; residual %.2f -> %.2f mm): %s", used,
+             result.pairs, result.iterations, result.residual_before_mm, result.residual_after_mm,
              ", ".join(f"{r['name']} {r['moved_mm']:.1f} mm / {r['turned_deg']:.2f} deg" for r in rows))
     return {"calibration_refined": True, "calibration_refined_max_mm": float(result.moved_mm.max()),
-            "calibration_refined_max_deg": float(result.turned_deg.max()), "calibration_world_kept_by": result.world_kept_by}
+            "calibration_refined_max_deg": float(result.turned_deg.max())}
 
 
 def report_check(results: list, used_frames: int, pcfg) -> tuple[list[dict], list[str]]:

@@ -18,6 +18,7 @@ world the fits follow), before and after, and seconds per refinement.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import numpy as np
@@ -53,8 +54,8 @@ def drifts(case: str, C: int, centers: np.ndarray, seed: int, args) -> np.ndarra
 
 
 def main(argv=None) -> None:
-    from intercap.calib.alignment import refine_rig
     from intercap.config import PrepareConfig
+    from intercap.stages.prepare import refine_views
     from tools.bench_calibration_check import load_views
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
@@ -67,7 +68,7 @@ def main(argv=None) -> None:
     parser.add_argument("--prior", type=float, default=PrepareConfig.calib_refine_prior)
     parser.add_argument("--frames", type=int, default=PrepareConfig.calib_refine_frames)
     args = parser.parse_args(argv)
-    cfg = PrepareConfig()
+    cfg = dataclasses.replace(PrepareConfig(), calib_refine_prior=args.prior)
 
     print(f"{'session':<28} {'case':<14} {'seed':>4} {'apart mm':>16} {'common mm':>16} {'max deg':>14} {'s':>6}")
     for session_dir in args.sessions:
@@ -79,9 +80,7 @@ def main(argv=None) -> None:
                 wrong = drifts(case, len(names), centers, seed, args)
                 moved = [[f @ W[:3, :3].T + W[:3, 3] for f in view] for view, W in zip(per_view, wrong)]
                 start = time.perf_counter()
-                result = refine_rig(moved, names, centers, max_distance=cfg.icp_max_distance_m,
-                                    voxel_size=max(2 * cfg.voxel_size_m, 0.02), iterations=cfg.calib_refine_iterations,
-                                    prior=args.prior, linear_beyond_m=cfg.calib_refine_linear_beyond_m)
+                result = refine_views(moved, names, centers, cfg)
                 seconds = time.perf_counter() - start
                 before = subject_errors(wrong, subject)
                 after = subject_errors(result.corrections @ wrong, subject)

@@ -124,6 +124,13 @@ def check_views(points_per_view: list, names: list[str], centers, pcfg) -> list:
                              min_mm=pcfg.calib_warn_mm, min_deg=pcfg.calib_warn_deg)
 
 
+def refine_views(points_per_view: list, names: list[str], centers, pcfg):
+    """The calibration refinement (`refine_rig`) with `prepare`'s settings, as `check_views` is the check."""
+    return refine_rig(points_per_view, names, centers, max_distance=pcfg.icp_max_distance_m,
+                      voxel_size=max(2 * pcfg.voxel_size_m, 0.02), iterations=pcfg.calib_refine_iterations,
+                      prior=pcfg.calib_refine_prior, linear_beyond_m=pcfg.calib_refine_linear_beyond_m)
+
+
 def view_points(session, clouds: ViewClouds, frame_ids, stage_dir: Path | None, desc: str,
                 progress: bool) -> tuple[list[list[np.ndarray]], int]:
     """Per camera, its world points of each of `frame_ids` with at least two views (a dropped view
@@ -167,9 +174,7 @@ def refine_cameras(session, clouds: ViewClouds, stage_dir: Path, pcfg, progress:
     if not used:
         return {"calibration_refined": False}
     names = session.camera_names
-    result = refine_rig(per_view, names, clouds.cameras.centers.numpy(), max_distance=pcfg.icp_max_distance_m,
-                        voxel_size=max(2 * pcfg.voxel_size_m, 0.02), iterations=pcfg.calib_refine_iterations,
-                        prior=pcfg.calib_refine_prior, linear_beyond_m=pcfg.calib_refine_linear_beyond_m)
+    result = refine_views(per_view, names, clouds.cameras.centers.numpy(), pcfg)
     cameras = [dataclasses.replace(c, T_world_from_cam=T @ c.T_world_from_cam)
                for c, T in zip(session.cameras, result.corrections)]
     rows = [{"name": c.name, "moved_mm": round(float(mm), 2), "turned_deg": round(float(deg), 3)}

@@ -876,9 +876,10 @@ def fit_against_data_warning(global_metrics: dict, cfg, fps: float) -> str:
     ratio, limit = global_metrics.get("keypoint_energy_ratio"), cfg.global_.max_keypoint_energy_ratio
     if ratio is None or limit <= 0 or ratio <= limit:
         return ""
-    return (f'<p class="warn">The joint fit moved the body away from its keypoints (their energy x{ratio:.1f}): the '
-            f"motion terms and the data disagree. Is session.yaml's fps ({fps:g}) the rate of the frames given? If "
-            "frames were skipped, set it to theirs.</p>")
+    from intercap.stages.global_fit import data_disagreement
+
+    text = data_disagreement(ratio, fps)
+    return f'<p class="warn">{html.escape(text[0].upper() + text[1:], quote=False)}.</p>'
 
 
 def _motion_section(stages, frames, fids, fps, mesh, gt) -> str:

@@ -659,12 +659,18 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     ratio = after / before if before > 0 else 1.0
     speed = pelvis_speed_p90(out_dir, session.fps)
     if g.max_keypoint_energy_ratio > 0 and ratio > g.max_keypoint_energy_ratio:
-        log.warning("global: the joint fit moved the body away from its keypoints (their energy x%.1f): the "
-                    "motion terms and the data disagree. Is session.yaml's fps (%g) the rate of the frames given? "
-                    "If frames were skipped, set it to theirs (the per-frame pelvis moves %.1f m/s at the 90th "
-                    "percentile at %g fps)", ratio, session.fps, speed, session.fps)
+        log.warning("global: %s (the per-frame pelvis moves %.1f m/s at the 90th percentile at %g fps)",
+                    data_disagreement(ratio, session.fps), speed, session.fps)
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
             "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio}
+
+
+def data_disagreement(ratio: float, fps: float) -> str:
+    """What a person is told (log and report) when the joint fit raised the keypoints' energy `ratio`
+    times, past `global.max_keypoint_energy_ratio`: most often a wrong frame rate."""
+    return (f"the joint fit moved the body away from its keypoints (their energy x{ratio:.1f}): the motion terms "
+            f"and the data disagree. Is session.yaml's fps ({fps:g}) the rate of the frames given? If frames were "
+            "skipped, set it to theirs")
 
 
 def pelvis_speed_p90(out_dir: Path, fps: float) -> float:

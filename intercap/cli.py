@@ -114,7 +114,8 @@ def _cmd_import_behave(args) -> int:
 
     r = import_behave(args.seq_dir, args.out_session, calib_dir=args.calib, objects_dir=args.objects,
                       overwrite=args.overwrite, start=args.start, end=args.end)
-    print(f"{r['frames']} frames ({', '.join(r['cameras'])}; object {r['object']}, {r['object_fits']} fits) "
+    gaps = f", {len(r['gaps'])} without a folder" if r["gaps"] else ""
+    print(f"{r['frames']} frames{gaps} ({', '.join(r['cameras'])}; object {r['object']}, {r['object_fits']} fits) "
           f"at {r['fps']:g} fps imported in {r['seconds']:.2f} s to {Path(args.out_session).resolve()}")
     return 0
 

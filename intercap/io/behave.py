@@ -49,6 +49,7 @@ import numpy as np
 import yaml
 
 from intercap.io.files import write_json
+from intercap.session.problems import format_frame_list
 from intercap.io.importing import (
     DatasetImportError,
     camera_entry,
@@ -75,6 +76,14 @@ def behave_frames(seq: Path) -> list[tuple[str, float]]:
     if not frames:
         raise DatasetImportError(f"{seq}: no BEHAVE frame folders (t0000.000/ ...)")
     return frames
+
+
+def frame_slots(times: np.ndarray, fps: float) -> np.ndarray:
+    """Session frame index of each frame time: its period count from the first, so a
+    missing folder leaves an empty frame instead of shifting the later ones in time.
+    Times that do not fall on distinct periods (uneven capture) keep consecutive indices."""
+    slots = np.round((times - times[0]) * fps).astype(np.int64)
+    return slots if len(slots) < 2 or (np.diff(slots) > 0).all() else np.arange(len(times))
 
 
 def _first_file(*candidates: Path) -> Path | None:
@@ -172,20 +181,22 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
     times = np.array([f[1] for f in frames])
     dt = np.diff(times)
     fps = float(np.round(1.0 / np.median(dt), 3)) if len(dt) and np.median(dt) > 0 else 30.0
+    slots = frame_slots(times, fps)
     with staging(out_session, overwrite) as tmp:
         for c, k in enumerate(kinects):
             for sub in ("color", "depth"):
                 (tmp / f"k{k}" / sub).mkdir(parents=True)
-        fits = np.full((len(frames), 2, 3), np.nan)
+        n_slots = int(slots[-1]) + 1
+        fits = np.full((n_slots, 2, 3), np.nan)
         for i, (folder_name, _) in enumerate(frames):
-            folder = seq / folder_name
+            folder, i = seq / folder_name, int(slots[i])
             for c, k in enumerate(kinects):
                 color = frame_file(folder, k, "color", ("jpg", "jpeg", "png"))
                 depth = frame_file(folder, k, "depth", ("png",))
                 if color is None or depth is None:
                     missing = folder / f"k{k}.{'color.jpg' if color is None else 'depth.png'}"
                     raise DatasetImportError(f"{missing}: missing (camera k{k} of this BEHAVE frame)")
-                if i == 0 and image_size(color) != sizes[c]:
+                if i == slots[0] and image_size(color) != sizes[c]:
                     raise DatasetImportError(f"{color}: {image_size(color)[0]}x{image_size(color)[1]} but its "
                                              f"calibration says {sizes[c][0]}x{sizes[c][1]}")
                 copy_color(color, tmp / f"k{k}" / "color", i)
@@ -203,7 +214,7 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
                         fit = pickle.load(f)
                     fits[i] = np.asarray(fit["angle"], np.float64).reshape(3), np.asarray(fit["trans"], np.float64).reshape(3)
         write_calibration(tmp, cams, world="metres; BEHAVE's world: camera k1's colour camera frame (OpenCV axes)")
-        doc: dict = {"fps": fps, "frames": {"start": 0, "end": len(frames) - 1}, "body": {"model": "anny"}}
+        doc: dict = {"fps": fps, "frames": {"start": 0, "end": n_slots - 1}, "body": {"model": "anny"}}
         have_fit = np.isfinite(fits).all((1, 2))
         if name:
             mesh_path = find_template(objects_dir, name)
@@ -215,7 +226,7 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
             if have_fit.any():
                 from scipy.spatial.transform import Rotation
 
-                R = np.full((len(frames), 3, 3), np.nan)
+                R = np.full((n_slots, 3, 3), np.nan)
                 R[have_fit] = Rotation.from_rotvec(fits[have_fit, 0]).as_matrix()
                 t = fits[:, 1]
                 if have_fit.all():
@@ -225,10 +236,14 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
                     np.savez(tmp / "behave_object_fits.npz", R=R, t=t, valid=have_fit)
         (tmp / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
         write_json(tmp / "behave_frames.json", {"sequence": str(seq), "frames": [
-            {"frame": i, "folder": f, "time_s": s} for i, (f, s) in enumerate(frames)],
+            {"frame": int(i), "folder": f, "time_s": s} for i, (f, s) in zip(slots, frames)],
             "object_fits": int(have_fit.sum())})
-    if len(dt) and np.ptp(dt) > 0.25 * np.median(dt):
+    gaps = sorted(set(range(n_slots)) - set(slots.tolist()))
+    if gaps:
+        log.warning("behave: %d frame time(s) of the %.3g fps timeline have no folder; they are session frames "
+                    "without files (%s), so every frame keeps its time", len(gaps), fps, format_frame_list(gaps))
+    elif len(dt) and np.ptp(dt) > 0.25 * np.median(dt):
         log.warning("behave: frame times are unevenly spaced (%.3f..%.3f s); fps %.3g is their median; "
                     "behave_frames.json keeps each frame's time", dt.min(), dt.max(), fps)
-    return {"frames": len(frames), "fps": fps, "cameras": [c["name"] for c in cams], "object": name,
+    return {"frames": n_slots, "folders": len(frames), "gaps": gaps, "fps": fps, "cameras": [c["name"] for c in cams], "object": name,
             "object_fits": int(have_fit.sum()), "seconds": time.perf_counter() - t0}

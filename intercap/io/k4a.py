@@ -10,7 +10,9 @@ Time: a block's device timestamp is its pts + K4A_START_OFFSET_NS. Within one fi
 depth image of a capture is the one whose timestamp minus the depth delay lies within
 half a frame period of the colour image's; across files (a wired-sync rig) frames are
 grouped the same way. A camera missing from a group is a dropped frame for that
-camera (no file written, reported), never filled by shifting indices.
+camera (no file written, reported), never filled by shifting indices; a frame period
+that no device has (every camera dropped it, e.g. one recording's drop) is a session
+frame without files, so frame k stays at time k / fps.
 
 Conventions of the written session: the camera of each device is its COLOUR camera
 (depth registered to it), OpenCV axes (x right, y down, z forward), metres. The world
@@ -107,9 +109,10 @@ def align(recordings: list[Recording]) -> Alignment:
             groups.append([k])
             anchors.append(t)
     keep = [g for g, a in enumerate(anchors) if first - half <= a <= last + half]
+    rows, times = _timeline([anchors[g] for g in keep], fps)
     D = len(recordings)
-    frames = np.full((len(keep), D), -1, dtype=np.int64)
-    for row, g in enumerate(keep):
+    frames = np.full((len(times), D), -1, dtype=np.int64)
+    for row, g in zip(rows, keep):
         for k in groups[g]:
             frames[row, dev[k]] = idx[k]
     depth = np.full_like(frames, -1)
@@ -124,7 +127,22 @@ def align(recordings: list[Recording]) -> Alignment:
             j = np.where(np.abs(r.depth_ts[j - 1] - want) <= np.abs(r.depth_ts[j] - want), j - 1, j)
         ok = np.abs(r.depth_ts[j] - want) < half
         depth[np.flatnonzero(have), d] = np.where(ok, j, -1)
-    return Alignment(frames, depth, np.asarray([anchors[g] for g in keep], dtype=np.int64), fps)
+    return Alignment(frames, depth, times, fps)
+
+
+def _timeline(anchors: list[int], fps: float) -> tuple[list[int], np.ndarray]:
+    """Rows of the groups' anchor times on a timeline of one row per frame period, and
+    the rows' times: where every device dropped a frame (a single recording's drop, or
+    a rig's common one) the gap keeps its rows, empty, so later frames are not shifted
+    in time (the fits' velocity and acceleration terms assume one period per frame)."""
+    if not anchors:
+        return [], np.zeros(0, dtype=np.int64)
+    period = 1e9 / fps
+    steps = [max(1, int(round((b - a) / period))) for a, b in zip(anchors[:-1], anchors[1:])]
+    rows = np.concatenate([[0], np.cumsum(steps)]).astype(np.int64)
+    times = np.round(anchors[0] + np.arange(rows[-1] + 1) * period).astype(np.int64)
+    times[rows] = anchors
+    return rows.tolist(), times
 
 
 # ---------------------------------------------------------------- session writing

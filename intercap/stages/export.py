@@ -217,6 +217,19 @@ def behave_frame_name(seconds: float) -> str:
     return f"t{seconds:08.3f}"
 
 
+def behave_frame_names(session) -> list[str]:
+    """Each session frame's BEHAVE folder name: a session imported from BEHAVE keeps its
+    source folders (behave_frames.json), so the export lines up with the sequence it came
+    from; other frames are named by time: the first source folder's time + frame / fps."""
+    source = Path(session.root) / "behave_frames.json"
+    known, t0 = {}, 0.0
+    if source.is_file():
+        frames = read_json(source).get("frames", [])
+        known = {int(f["frame"]): str(f["folder"]) for f in frames}
+        t0 = min((float(f["time_s"]) - int(f["frame"]) / float(session.fps) for f in frames), default=0.0)
+    return [known.get(int(i)) or behave_frame_name(t0 + float(i) / float(session.fps)) for i in session.frame_ids]
+
+
 def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
     """(T, 3, 3) rotations -> (T, 3) axis-angle (radians x unit axis)."""
     from scipy.spatial.transform import Rotation
@@ -243,7 +256,8 @@ def write_behave(session, res: dict, out_dir: Path, frame_name: str = "world", p
       sequences/<session>/t{s:08.3f}/person/fit02/person_fit.pkl   {"pose", "betas", "trans", "model", all params}
       sequences/<session>/t{s:08.3f}/<obj>/fit01/<obj>_fit.ply     the posed object
       sequences/<session>/t{s:08.3f}/<obj>/fit01/<obj>_fit.pkl     {"angle": (3,), "trans": (3,)}
-    Frame folders are named by seconds = frame id / fps. Object parameters follow BEHAVE's
+    Frame folders are named by seconds = frame id / fps, or as the BEHAVE sequence the session
+    was imported from names them (behave_frame_names). Object parameters follow BEHAVE's
     parse_obj_pose: v = Rotation.from_rotvec(angle).as_matrix() @ (x - template mean) + trans, so
     loading the centred template above and applying angle, trans gives <obj>_fit.ply. Meshes and
     parameters are in our world frame, or (frame_name = a camera's name) in that camera's frame, as
@@ -279,8 +293,9 @@ def write_behave(session, res: dict, out_dir: Path, frame_name: str = "world", p
     per_frame = {k: v for k, v in params.items() if k != "model" and getattr(v, "ndim", 0) >= 1 and len(v) == T
                  and k not in ("valid", "frame_ids")}
     pose_keys = ["global_orient"] + sorted(k for k in per_frame if k.endswith("pose"))
+    folder_names = behave_frame_names(session)
     for i in tqdm(range(T), desc="export behave", unit="frame", disable=not progress):
-        folder = seq / behave_frame_name(float(session.frame_ids[i]) / float(session.fps))
+        folder = seq / folder_names[i]
         if ok_body[i]:
             verts = np.asarray(res["body_vertices"][i], np.float64) @ A.T + b
             write_mesh_ply(folder / "person" / "fit02" / "person_fit.ply", verts, res["body_faces"])

@@ -16,6 +16,7 @@ from intercap.io.behave import import_behave
 from intercap.io.importing import DatasetImportError
 from intercap.io.intercap_dataset import calibration_set, import_intercap
 from intercap.session import Session, validate
+from intercap.stages.export import behave_frame_names
 
 FRAMES = 3
 SAMPLE = json.loads((SAMPLE_SESSION / "calibration.json").read_text())["cameras"]
@@ -136,6 +137,32 @@ def test_behave_import_copies_frames_and_object_fits(behave):
         assert np.abs(posed - posed_sample_object_in_cam1(f)).max() < 1e-6
     frames = json.loads((out / "behave_frames.json").read_text())["frames"]
     assert [x["folder"] for x in frames] == ["t0000.000", "t0000.200", "t0000.400"]
+
+
+def test_behave_missing_frame_folder_keeps_later_frames_in_time(tmp_path):
+    """A frame folder missing from the sequence is a session frame without files (the
+    velocity and acceleration terms assume one period per frame), not a shift."""
+    seq = write_behave(tmp_path)
+    for f in range(FRAMES, FRAMES + 2):  # two more frames on the 5 fps timeline, then drop the middle one
+        shutil.copytree(seq / f"t{(f - FRAMES) * 0.2:08.3f}", seq / f"t{f * 0.2:08.3f}")
+    shutil.rmtree(seq / "t0000.200")
+    out = tmp_path / "session"
+    summary = import_behave(seq, out, calib_dir=tmp_path / "calibs", objects_dir=tmp_path / "objects")
+    assert summary["frames"] == FRAMES + 2 and summary["gaps"] == [1] and summary["fps"] == pytest.approx(5.0)
+    session, problems = validate(out)
+    assert session is not None and not [p for p in problems if p.fatal], problems
+    assert session.num_frames == FRAMES + 2 and not session.availability()["color"][:, 1].any()
+    for f, src in ((0, 0), (2, 2), (3, 0), (4, 1)):
+        assert (out / "k0" / "color" / f"{f:06d}.jpg").read_bytes() == sample_file(0, "color", src).read_bytes()
+    frames = json.loads((out / "behave_frames.json").read_text())["frames"]
+    assert [(x["frame"], x["folder"]) for x in frames] == [
+        (0, "t0000.000"), (2, "t0000.400"), (3, "t0000.600"), (4, "t0000.800")]
+    fits = np.load(out / "behave_object_fits.npz")
+    assert fits["valid"].tolist() == [True, False, True, True, True]
+    # the BEHAVE export names each frame as the source did (the gap by its time), also from a later start
+    assert behave_frame_names(session) == ["t0000.000", "t0000.200", "t0000.400", "t0000.600", "t0000.800"]
+    import_behave(seq, tmp_path / "later", calib_dir=tmp_path / "calibs", objects_dir=tmp_path / "objects", start=2)
+    assert behave_frame_names(Session.load(tmp_path / "later")) == ["t0000.600", "t0000.800"]
 
 
 def test_behave_missing_camera_is_one_line_error_and_leaves_nothing(tmp_path):

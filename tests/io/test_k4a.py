@@ -203,6 +203,36 @@ def test_rig_alignment_reports_drops_and_never_shifts_frames(tmp_path):
     assert not any(p.fatal for p in problems), [str(p) for p in problems]
 
 
+@pytest.mark.parametrize("devices", [1, 2])
+def test_a_frame_every_camera_dropped_keeps_its_time(tmp_path, devices):
+    """One recording's drop (or a rig's common one) is a session frame without files:
+    frame k keeps time k / fps, so later frames are not shifted (depth 1000 + 100 k mm
+    encodes the recorded frame)."""
+    offsets = (0, 120_000)[:devices]
+    calib = device_calibration_json(DEPTH_P, COLOR_P, R_CD, T_CD)
+    jpg = cv2.imencode(".jpg", np.full((720, 1280, 3), 128, np.uint8))[1].tobytes()
+    paths = []
+    for d, off in enumerate(offsets):
+        ks = [k for k in range(6) if k not in (2, 3)]
+        paths.append(write_k4a_mkv(tmp_path / f"dev{d}.mkv", [jpg] * len(ks),
+                                   [np.full((576, 640), 1000 + 100 * k, np.uint16) for k in ks],
+                                   [int(round(k * 1e6 / 30)) for k in ks], calib, serial=f"S{d}",
+                                   start_offset_ns=5_000_000_000 + off))
+    out = tmp_path / "session"
+    r = import_k4a(out, paths, uncalibrated=True, color_resolution="360")
+    names = [f"cam{d}" for d in range(devices)]
+    assert r["frames"] == 6 and r["dropped"] == {n: [2, 3] for n in names}
+    for n in names:
+        assert sorted(p.name for p in (out / n / "depth").iterdir()) == [f"{k:06d}.png" for k in (0, 1, 4, 5)]
+        for k in (1, 4, 5):
+            reg = cv2.imread(str(out / n / "depth" / f"{k:06d}.png"), cv2.IMREAD_UNCHANGED)
+            assert abs(np.median(reg[reg > 0]) - (1000 + 100 * k)) < 0.1 * (1000 + 100 * k)
+    times = json.loads((out / "k4a_import.json").read_text())["frame_time_ns"]
+    assert np.allclose(np.diff(times), 1e9 / 30, atol=1e5)
+    _, problems = validate(out)
+    assert not any(p.fatal for p in problems), [str(p) for p in problems]
+
+
 def test_several_devices_need_their_poses(tmp_path):
     paths = _synthetic_rig(tmp_path, n=2)
     with pytest.raises(K4AError, match="intercap calibrate"):

@@ -542,11 +542,14 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     if calib is None:
         page.not_run("calibration", "Calibration check", "no OUT/prepare/calibration_check.json (stage prepare)")
     else:
-        cols = ["cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_translation_mm",
+        cols = ["cam_a", "cam_b", "overlap_points", "blocks", "judged", "median_distance_mm", "icp_rmse_mm", "correction_translation_mm",
                 "translation_sigma_mm", "correction_rotation_deg", "rotation_sigma_deg", "flagged", "unobservable"]
         flagged = calib.get("flagged") or []
         msg = (f'<p class="warn">{len(flagged)} camera pair(s) disagree by more than {calib.get("warn_mm")} mm: '
                "check the calibration</p>") if flagged else "<p>no camera pair flagged</p>"
+        if calib.get("unchecked_cameras"):
+            msg += (f'<p class="warn">not checked: {", ".join(calib["unchecked_cameras"])} (too little surface '
+                    "shared with the other views; poses used as given)</p>")
         refined = _json(out_dir / "prepare" / "calibration_refined.json")
         after = calib.get("after_refinement")
         if refined is not None and after is not None:

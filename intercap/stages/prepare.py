@@ -21,7 +21,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from intercap.calib.alignment import check_calibration, format_agreement, refine_rig, suspect_cameras
+from intercap.calib.alignment import (
+    check_calibration,
+    format_agreement,
+    refine_rig,
+    suspect_cameras,
+    unchecked_cameras,
+)
 from intercap.config import Config
 from intercap.geometry.cameras import Cameras, depth_to_point_grid, pixel_rays
 from intercap.geometry.ground import GroundPlane, fit_ground_plane, up_hint_from_cameras
@@ -109,7 +115,8 @@ def estimate_ground(session, clouds: ViewClouds, cfg, progress: bool) -> tuple[G
 
 AGREEMENT_FIELDS = ("cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
                     "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg",
-                    "translation_sigma_mm", "rotation_sigma_deg", "observable_dof", "significance", "flagged")
+                    "translation_sigma_mm", "rotation_sigma_deg", "observable_dof", "significance", "flagged",
+                    "blocks", "judged")
 
 
 def agreement_rows(results: list, frames: int) -> list[dict]:
@@ -121,7 +128,7 @@ def check_views(points_per_view: list, names: list[str], centers, pcfg) -> list:
     """The calibration check with `prepare`'s settings: per view, its world points of each checked frame."""
     return check_calibration(points_per_view, names, centers, max_distance=pcfg.icp_max_distance_m,
                              voxel_size=max(2 * pcfg.voxel_size_m, 0.02), k_sigma=pcfg.calib_k_sigma,
-                             min_mm=pcfg.calib_warn_mm, min_deg=pcfg.calib_warn_deg)
+                             min_mm=pcfg.calib_warn_mm, min_deg=pcfg.calib_warn_deg, min_blocks=pcfg.calib_min_blocks)
 
 
 def refine_views(points_per_view: list, names: list[str], centers, pcfg):
@@ -225,7 +232,12 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     results, used_frames = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
     pairs, suspects = report_check(results, used_frames, pcfg)
     check = {"frames": [int(f) for f in checked], "pairs": pairs, **check_thresholds(pcfg),
-             "flagged": [p for p in pairs if p["flagged"]], "suspect_cameras": suspects}
+             "flagged": [p for p in pairs if p["flagged"]], "suspect_cameras": suspects,
+             "unchecked_cameras": unchecked_cameras(results)}
+    if check["unchecked_cameras"]:
+        log.warning("calibration of camera(s) %s not checked: too little surface shared with the other views "
+                    "(a camera close in, the floor out of its image); used as given",
+                    ", ".join(check["unchecked_cameras"]))
     refined = {"calibration_refined": False}
     if pcfg.calib_refine == "always" or (pcfg.calib_refine == "auto" and check["flagged"]):
         refined = refine_cameras(session, clouds, stage_dir, pcfg, progress)

@@ -276,3 +276,26 @@ def test_refine_rig_brings_a_drifted_camera_back_and_leaves_an_exact_rig():
     print(f"cameras apart at the subject: {before:.1f} -> {after:.1f} mm")
     assert before > 5.0 and after < before / 3
     assert result.residual_after_mm < result.residual_before_mm
+
+
+def test_a_view_that_shares_only_part_of_the_person_is_not_judged(tmp_path):
+    """The sample with camera 1 close in (its upper 150 rows: head to thighs, no floor): its pairs
+    share a few patches of the person, too few clusters for the sandwich to be evidence, so the
+    exact rig raises no flag and those pairs say they were not judged; the others are judged."""
+    from conftest import SAMPLE_SESSION
+
+    from intercap.calib.alignment import unchecked_cameras
+    from intercap.config import PrepareConfig
+    from intercap.stages.prepare import check_views
+    from intercap.synth.partial import crop_view
+    from tools.bench_calibration_check import load_views
+
+    cfg = PrepareConfig()
+    session, centers, per_view = load_views(crop_view(SAMPLE_SESSION, tmp_path / "s", "cam1", (0, 0, 320, 150)),
+                                            cfg.calib_frames)
+    exact = check_views(per_view, [c.name for c in session.cameras], centers, cfg)
+    print(format_agreement(exact))
+    assert not any(r.flagged for r in exact)
+    for r in exact:
+        assert r.judged == ("cam1" not in (r.cam_a, r.cam_b)), (r.cam_a, r.cam_b, r.blocks)
+    assert unchecked_cameras(exact) == ["cam1"]

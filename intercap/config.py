@@ -239,6 +239,12 @@ class GlobalConfig:
     # disagree, as when a take's frames were thinned (every 5th of 30 fps) but it still says 30 fps (x6.2,
     # body 11 -> 49 mm; x1.0-1.6 on six right takes): a warning says so. 0 turns it off.
     max_keypoint_energy_ratio: float = 3.0
+    # Cameras that take their frames at other times than the rest (no wired sync: up to half a period)
+    # show the person where the fitted motion puts them then; calib.time_offsets reads each camera's lag
+    # from its keypoints (against the cameras' median, on `time_check_frames` frames) and a warning names
+    # those past this many ms (a lone camera 16.7 ms late reads ~10; synchronised ones within 0.5). 0: off.
+    max_camera_offset_ms: float = 4.0
+    time_check_frames: int = 300
     w_object: float = 3.0e7  # E_O (mean over a frame's points, metres^2)
     w_object_anchor: float = 1.0e8  # the tracked (rendered silhouette + depth) pose x its confidence: measured more exact than E_O alone
     w_interpenetration: float = 3.0e6  # E_P (sum over body vertices)

@@ -593,7 +593,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     page.add("penetration", "Penetration", _penetration_section(stages, frames, fids, surface, out_dir, gt))
     _advance(bar, steps)
     page.add("motion", "Motion (acceleration)", fit_against_data_warning(metrics.get("global") or {}, cfg, fps)
-             + _motion_section(stages, frames, fids, fps, mesh, gt))
+             + unsynchronised_warning(metrics.get("global") or {}, cfg) + _motion_section(stages, frames, fids, fps, mesh, gt))
     _advance(bar, steps)
     physics = _npz(out_dir / "physics" / "physics.npz")
     if physics is None:
@@ -883,6 +883,15 @@ def fit_against_data_warning(global_metrics: dict, cfg, fps: float) -> str:
 
     text = data_disagreement(ratio, fps)
     return f'<p class="warn">{html.escape(text[0].upper() + text[1:], quote=False)}.</p>'
+
+
+def unsynchronised_warning(global_metrics: dict, cfg) -> str:
+    """A warning paragraph naming cameras whose frames lag or lead the others' past
+    `global.max_camera_offset_ms` (calib.time_offsets)."""
+    from intercap.stages.global_fit import unsynchronised
+
+    text = unsynchronised(global_metrics.get("camera_time_offsets_ms") or {}, cfg.global_.max_camera_offset_ms)
+    return f'<p class="warn">Cameras {html.escape(text, quote=False)}.</p>' if text else ""
 
 
 def _motion_section(stages, frames, fids, fps, mesh, gt) -> str:

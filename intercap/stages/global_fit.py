@@ -661,8 +661,38 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     if g.max_keypoint_energy_ratio > 0 and ratio > g.max_keypoint_energy_ratio:
         log.warning("global: %s (the per-frame pelvis moves %.1f m/s at the 90th percentile at %g fps)",
                     data_disagreement(ratio, session.fps), speed, session.fps)
+    offsets = camera_offsets_ms(session, problem, out_dir, cfg) if g.max_camera_offset_ms > 0 else {}
+    if unsynchronised(offsets, g.max_camera_offset_ms):
+        log.warning("global: %s", unsynchronised(offsets, g.max_camera_offset_ms))
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
-            "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio}
+            "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio,
+            "camera_time_offsets_ms": offsets}
+
+
+def camera_offsets_ms(session, problem: "GlobalProblem", out_dir: Path, cfg) -> dict:
+    """Each camera's lag behind the fitted motion against the cameras' median, ms
+    (calib.time_offsets), on `global.time_check_frames` frames spread over the take."""
+    from intercap.calib.time_offsets import camera_time_offsets
+
+    keypoints = np.load(out_dir / "global" / "keypoints3d.npy", mmap_mode="r")
+    T = len(keypoints)
+    if T < 3 or session.num_cameras < 2:
+        return {}
+    frames = np.unique(np.linspace(1, T - 2, min(T - 2, cfg.global_.time_check_frames)).round().astype(np.int64))
+    observed = problem.observations.keypoints.batch(session.frame_ids[frames], cfg.body.min_keypoint_confidence)
+    offsets = camera_time_offsets(keypoints, observed, frames, problem.cameras, session.fps)
+    return {name: round(float(o) * 1000, 2) for name, o in zip(session.camera_names, offsets) if np.isfinite(o)}
+
+
+def unsynchronised(offsets_ms: dict, limit_ms: float) -> str:
+    """What a person is told (log and report) of cameras whose frames lag or lead the others' by
+    more than `limit_ms` (global.max_camera_offset_ms); empty when none does."""
+    off = {name: ms for name, ms in offsets_ms.items() if abs(ms) > limit_ms > 0}
+    if not off:
+        return ""
+    return (", ".join(f"{name} {ms:+.0f} ms" for name, ms in off.items()) + " against the other cameras: their "
+            "frames seem taken at other times (a lone camera shows part of its lag). Were the devices recorded with "
+            "wired sync? Each such view puts the moving person where the others do not")
 
 
 def data_disagreement(ratio: float, fps: float) -> str:

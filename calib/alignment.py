@@ -417,7 +417,8 @@ def pair_agreement(
     sigma_mm = math.hypot(_sigma_along(cov6[3:, 3:], x6[3:]), floor) * 1000
     sigma_deg = math.degrees(math.hypot(_sigma_along(cov6[:3, :3], x6[:3]), floor) / radius)
     judged = blocks >= min_blocks
-    flagged = judged and bool((mm > min_mm and mm > k_sigma * sigma_mm) or (deg > min_deg and deg > k_sigma * sigma_deg))
+    flagged = judged and bool((mm > min_mm and mm > k_sigma * sigma_mm)
+                              or (deg > min_deg and deg > k_sigma * sigma_deg))
     return PairAgreement(
         cam_a=cam_a,
         cam_b=cam_b,

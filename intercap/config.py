@@ -40,7 +40,7 @@ class PrepareConfig:
     calib_warn_mm: float = 6.0  # a pair is flagged when its observable correction exceeds this (or calib_warn_deg)
     calib_warn_deg: float = 0.3
     calib_k_sigma: float = 4.0  # ... and also calib_k_sigma standard deviations of itself (clear evidence only)
-    calib_min_blocks: int = 100  # ... over an overlap of at least this many (frame, 25 cm block) clusters (else not judged)
+    calib_min_blocks: int = 100  # ... over an overlap of >= this many (frame, 25 cm block) clusters (else not judged)
     calib_refine: str = "auto"  # correct the cameras' poses from the depth: auto (when the check flags a pair), always, never
     calib_refine_frames: int = 8  # frames (spread over the sequence) the refinement aligns
     calib_refine_iterations: int = 10

@@ -542,8 +542,9 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     if calib is None:
         page.not_run("calibration", "Calibration check", "no OUT/prepare/calibration_check.json (stage prepare)")
     else:
-        cols = ["cam_a", "cam_b", "overlap_points", "blocks", "judged", "median_distance_mm", "icp_rmse_mm", "correction_translation_mm",
-                "translation_sigma_mm", "correction_rotation_deg", "rotation_sigma_deg", "flagged", "unobservable"]
+        cols = ["cam_a", "cam_b", "overlap_points", "blocks", "judged", "median_distance_mm", "icp_rmse_mm",
+                "correction_translation_mm", "translation_sigma_mm", "correction_rotation_deg", "rotation_sigma_deg",
+                "flagged", "unobservable"]
         flagged = calib.get("flagged") or []
         msg = (f'<p class="warn">{len(flagged)} camera pair(s) disagree by more than {calib.get("warn_mm")} mm: '
                "check the calibration</p>") if flagged else "<p>no camera pair flagged</p>"
@@ -593,7 +594,8 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     page.add("penetration", "Penetration", _penetration_section(stages, frames, fids, surface, out_dir, gt))
     _advance(bar, steps)
     page.add("motion", "Motion (acceleration)", fit_against_data_warning(metrics.get("global") or {}, cfg, fps)
-             + unsynchronised_warning(metrics.get("global") or {}, cfg) + _motion_section(stages, frames, fids, fps, mesh, gt))
+             + unsynchronised_warning(metrics.get("global") or {}, cfg)
+             + _motion_section(stages, frames, fids, fps, mesh, gt))
     _advance(bar, steps)
     physics = _npz(out_dir / "physics" / "physics.npz")
     if physics is None:

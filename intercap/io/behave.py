@@ -245,5 +245,6 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
     elif len(dt) and np.ptp(dt) > 0.25 * np.median(dt):
         log.warning("behave: frame times are unevenly spaced (%.3f..%.3f s); fps %.3g is their median; "
                     "behave_frames.json keeps each frame's time", dt.min(), dt.max(), fps)
-    return {"frames": n_slots, "folders": len(frames), "gaps": gaps, "fps": fps, "cameras": [c["name"] for c in cams], "object": name,
+    return {"frames": n_slots, "folders": len(frames), "gaps": gaps, "fps": fps, "cameras": [c["name"] for c in cams],
+            "object": name,
             "object_fits": int(have_fit.sum()), "seconds": time.perf_counter() - t0}

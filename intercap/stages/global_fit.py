@@ -662,8 +662,9 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         log.warning("global: %s (the per-frame pelvis moves %.1f m/s at the 90th percentile at %g fps)",
                     data_disagreement(ratio, session.fps), speed, session.fps)
     offsets = camera_offsets_ms(session, problem, out_dir, cfg) if g.max_camera_offset_ms > 0 else {}
-    if unsynchronised(offsets, g.max_camera_offset_ms):
-        log.warning("global: %s", unsynchronised(offsets, g.max_camera_offset_ms))
+    out_of_sync = unsynchronised(offsets, g.max_camera_offset_ms)
+    if out_of_sync:
+        log.warning("global: %s", out_of_sync)
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
             "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio,
             "camera_time_offsets_ms": offsets}

@@ -242,7 +242,7 @@ class GlobalConfig:
     # Cameras that take their frames at other times than the rest (no wired sync: up to half a period)
     # show the person where the fitted motion puts them then; calib.time_offsets reads each camera's lag
     # from its keypoints (against the cameras' median, on `time_check_frames` frames) and a warning names
-    # those past this many ms (a lone camera 16.7 ms late reads ~10; synchronised ones within 0.5). 0: off.
+    # those past this many ms (a lone camera 16.7 ms late reads ~13; synchronised ones within 0.5). 0: off.
     max_camera_offset_ms: float = 4.0
     time_check_frames: int = 300
     w_object: float = 3.0e7  # E_O (mean over a frame's points, metres^2)

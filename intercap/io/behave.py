@@ -49,7 +49,6 @@ import numpy as np
 import yaml
 
 from intercap.io.files import write_json
-from intercap.session.problems import format_frame_list
 from intercap.io.importing import (
     DatasetImportError,
     camera_entry,
@@ -62,6 +61,7 @@ from intercap.io.importing import (
     write_depth,
     write_mask,
 )
+from intercap.session.problems import format_frame_list
 
 log = logging.getLogger(__name__)
 
@@ -188,15 +188,15 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
                 (tmp / f"k{k}" / sub).mkdir(parents=True)
         n_slots = int(slots[-1]) + 1
         fits = np.full((n_slots, 2, 3), np.nan)
-        for i, (folder_name, _) in enumerate(frames):
-            folder, i = seq / folder_name, int(slots[i])
+        for i, (folder_name, _) in zip(slots.tolist(), frames):
+            folder = seq / folder_name
             for c, k in enumerate(kinects):
                 color = frame_file(folder, k, "color", ("jpg", "jpeg", "png"))
                 depth = frame_file(folder, k, "depth", ("png",))
                 if color is None or depth is None:
                     missing = folder / f"k{k}.{'color.jpg' if color is None else 'depth.png'}"
                     raise DatasetImportError(f"{missing}: missing (camera k{k} of this BEHAVE frame)")
-                if i == slots[0] and image_size(color) != sizes[c]:
+                if i == 0 and image_size(color) != sizes[c]:
                     raise DatasetImportError(f"{color}: {image_size(color)[0]}x{image_size(color)[1]} but its "
                                              f"calibration says {sizes[c][0]}x{sizes[c][1]}")
                 copy_color(color, tmp / f"k{k}" / "color", i)
@@ -246,5 +246,4 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
         log.warning("behave: frame times are unevenly spaced (%.3f..%.3f s); fps %.3g is their median; "
                     "behave_frames.json keeps each frame's time", dt.min(), dt.max(), fps)
     return {"frames": n_slots, "folders": len(frames), "gaps": gaps, "fps": fps, "cameras": [c["name"] for c in cams],
-            "object": name,
-            "object_fits": int(have_fit.sum()), "seconds": time.perf_counter() - t0}
+            "object": name, "object_fits": int(have_fit.sum()), "seconds": time.perf_counter() - t0}

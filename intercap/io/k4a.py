@@ -86,8 +86,8 @@ def align(recordings: list[Recording]) -> Alignment:
     alone = [r.path.name for r in recordings if r.sync_mode.upper() == "STANDALONE"]
     if len(recordings) > 1 and alone:
         log.warning("%s recorded without wired sync (STANDALONE): device clocks are not shared, so pairing "
-                    "frames by device time may pair the wrong frames (`intercap run` measures lags up to about a frame: "
-                    "camera_time_offsets_ms in metrics.json)", ", ".join(alone))
+                    "frames by device time may pair the wrong frames (`intercap run` measures lags up to about a "
+                    "frame: camera_time_offsets_ms in metrics.json)", ", ".join(alone))
     first = max(int(r.color_ts[0]) for r in recordings)
     last = min(int(r.color_ts[-1]) for r in recordings)
     if last < first - half:

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Callable
 
 from intercap import parallel
-from intercap.config import Config, ConfigError, for_frame_rate, save_config
+from intercap.config import Config, ConfigError, resolved, save_config
 from intercap.io.files import read_json, write_json
 from intercap.session import frame_cache
 
@@ -42,10 +42,10 @@ class Stage:
 
 
 def _stage_runner(module: str) -> Callable:
-    """Stage.run of `intercap.stages.<module>`, imported only when the stage runs (a run of some
+    """`run` of `intercap.stages.<module>.stage`, imported only when the stage runs (a run of some
     stages does not import the others)."""
     def run(session, cfg, out_dir, progress):
-        return importlib.import_module(f"intercap.stages.{module}").run(session, cfg, out_dir, progress=progress)
+        return importlib.import_module(f"intercap.stages.{module}.stage").run(session, cfg, out_dir, progress=progress)
 
     return run
 
@@ -176,7 +176,7 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
 
     try:
         with parallel.repeatable(cfg):
-            _run_stages(session, for_frame_rate(cfg, session.fps), out_dir, names, metrics, progress)
+            _run_stages(session, resolved(cfg, session.fps), out_dir, names, metrics, progress)
     finally:
         parallel.shutdown()  # the stages' worker processes
     if cfg.report.enabled:  # OUT/report/index.html; a failure there never loses the results above

@@ -110,7 +110,7 @@ def test_body_fit_energies_on_gpu_match_cpu(models, tmp_path):
     from intercap.config import BodyConfig
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages.body import (
+    from intercap.stages.body.stage import (
         PHASES,
         BodyFitter,
         BodyObservations,
@@ -193,7 +193,7 @@ def test_body_fit_replayed_from_cuda_graphs_is_the_eager_fit(models, tmp_path, m
     import dataclasses
 
     from intercap.energies import optim
-    from intercap.stages import body
+    from intercap.stages.body import stage as body
 
     _, model = models
     session, bcfg, cameras, obs = gpu_observations(tmp_path, 6)
@@ -217,7 +217,7 @@ def test_failed_fit_is_refitted_on_gpu(models, tmp_path):
     """The body stage's tracking path (fit-to-data, four-heading refit, energy choice) runs on the GPU:
     the sample's frame 0 turned round and 0.4 m off is brought back onto its depth points."""
     from intercap.body_models import BodyParams
-    from intercap.stages import body
+    from intercap.stages.body import stage as body
 
     _, model = models
     _, bcfg, cameras, obs = gpu_observations(tmp_path, 1)
@@ -237,7 +237,7 @@ def test_failed_fit_is_refitted_on_gpu(models, tmp_path):
 
 
 def keypoints_of(session, out_dir, ids, bcfg) -> np.ndarray:
-    from intercap.stages.body import KeypointSource
+    from intercap.stages.body.stage import KeypointSource
 
     return KeypointSource(session, out_dir).batch(ids, bcfg.min_keypoint_confidence)
 
@@ -247,7 +247,7 @@ def gpu_observations(tmp_path, frames: int):
     from intercap.config import BodyConfig
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages import body
+    from intercap.stages.body import stage as body
 
     session = Session.load(SAMPLE_SESSION)
     bcfg = BodyConfig()
@@ -266,7 +266,7 @@ def test_object_fits_side_by_side_on_gpu_match_cpu(monkeypatch):
     from intercap.config import load_config
     from intercap.energies import optim
     from intercap.session import Session
-    from intercap.stages.object import ObjectTracker, axis_rotation
+    from intercap.stages.object.stage import ObjectTracker, axis_rotation
 
     replays = []
     replay = torch.cuda.CUDAGraph.replay

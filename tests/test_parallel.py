@@ -2,7 +2,8 @@
 import multiprocessing as mp
 
 from intercap.config import load_config
-from intercap.parallel import cpu_count, frame_chunks, run_chunks, shutdown, worker_count
+from intercap.parallel import cpu_count, shutdown, worker_count
+from intercap.stages.chunks import frame_chunks, run_chunks
 
 
 def test_processes_share_a_gpu_only_when_asked():

@@ -125,7 +125,7 @@ def test_dense_frame_rates_run_with_the_dense_budgets(tiny_session, tmp_path, mo
     import dataclasses
 
     import intercap.pipeline as pipeline
-    from intercap.config import DENSE_BUDGETS, for_frame_rate
+    from intercap.config import resolved, variant_settings
 
     cfg = load_config(overrides=["run.stages=prepare"])
     seen = []
@@ -133,12 +133,15 @@ def test_dense_frame_rates_run_with_the_dense_budgets(tiny_session, tmp_path, mo
     monkeypatch.setitem(pipeline.STAGES, "prepare", dataclasses.replace(
         stage, run=lambda session, cfg, out, progress: seen.append(cfg) or {}))
     run_pipeline(tiny_session, tmp_path / "out", cfg, progress=False)  # the tiny session is 30 fps
-    for section, setting, dense in DENSE_BUDGETS:
+    budgets = [(section, setting, dense) for section in ("body", "global_", "object")
+               for setting, dense, variant in variant_settings(getattr(cfg, section)) if variant == "dense"]
+    assert len(budgets) == 3
+    for section, setting, dense in budgets:
         given = getattr(cfg, section)
         assert getattr(given, setting) != getattr(given, dense)  # the test means something
         assert getattr(getattr(seen[0], section), setting) == getattr(given, dense)
-        assert getattr(getattr(for_frame_rate(cfg, 5.0), section), setting) == getattr(given, setting)
-        assert getattr(getattr(for_frame_rate(cfg, cfg.run.dense_fps), section), setting) == getattr(given, dense)
+        assert getattr(getattr(resolved(cfg, 5.0), section), setting) == getattr(given, setting)
+        assert getattr(getattr(resolved(cfg, cfg.run.dense_fps), section), setting) == getattr(given, dense)
     assert load_config(tmp_path / "out" / "config.yaml").body.pose_steps == cfg.body.pose_steps
 
 

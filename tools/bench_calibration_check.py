@@ -43,7 +43,7 @@ def load_views(session_dir: Path, frames: int):
     from intercap.config import PrepareConfig
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages.prepare import ViewClouds, spread_frames, view_points
+    from intercap.stages.prepare.stage import ViewClouds, spread_frames, view_points
 
     session = Session.load(session_dir)
     cameras = Cameras.from_infos(session.cameras)
@@ -55,7 +55,7 @@ def load_views(session_dir: Path, frames: int):
 def main(argv=None) -> None:
     from intercap.calib.alignment import suspect_cameras
     from intercap.config import PrepareConfig
-    from intercap.stages.prepare import check_views
+    from intercap.stages.prepare.stage import check_views
 
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("sessions", type=Path, nargs="+")

@@ -55,7 +55,7 @@ def drifts(case: str, C: int, centers: np.ndarray, seed: int, args) -> np.ndarra
 
 def main(argv=None) -> None:
     from intercap.config import PrepareConfig
-    from intercap.stages.prepare import refine_views
+    from intercap.stages.prepare.stage import refine_views
     from tools.bench_calibration_check import load_views
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -84,7 +84,7 @@ def measure(session_dir: Path, results: Path, scratch: Path) -> dict:
     """Every source's raw signal on one session, with timings."""
     from intercap.config import load_config
     from intercap.session import Session
-    from intercap.stages import contact
+    from intercap.stages.contact import stage as contact
 
     session = Session.load(session_dir)
     gt = session.ground_truth()
@@ -138,7 +138,7 @@ def main(argv=None) -> int:
     parser.add_argument("--keep", type=Path, default=None, help="folder for generated sessions (default: temporary)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
-    from intercap.stages.contact import clean_labels, distance_labels, overlap_labels
+    from intercap.stages.contact.stage import clean_labels, distance_labels, overlap_labels
 
     tmp = Path(tempfile.mkdtemp(prefix="bench_contact_"))
     pairs = list(args.pairs)

@@ -29,7 +29,7 @@ import torch
 
 from intercap.geometry.cameras import Cameras, project
 from intercap.session import Session, openpose_to_array
-from intercap.stages.detect import PersonCropDetector, detect_session, keypoints_path, make_detector
+from intercap.stages.detect.stage import PersonCropDetector, detect_session, keypoints_path, make_detector
 
 NUM_BODY, NUM_HANDS = 25, 42
 HIDDEN_MARGIN_M = {"body": 0.10, "hand": 0.04}  # nearer measured depth than this: the point is hidden

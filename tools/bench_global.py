@@ -87,7 +87,7 @@ def score(out: Path, session: Path) -> dict:
 def run_session(name: str, root: Path, overrides: list[str], width: int, height: int) -> dict:
     from intercap.config import load_config
     from intercap.pipeline import available_stages, run_pipeline
-    from intercap.stages.global_fit import window_frames, windows
+    from intercap.stages.global_fit.stage import windows
 
     session = make_session(name, root, width, height)
     out = root / f"out_{name}"
@@ -101,7 +101,7 @@ def run_session(name: str, root: Path, overrides: list[str], width: int, height:
     after = score(out, session)
     T = len(np.load(out / "body_vertices.npy", mmap_mode="r"))
     gt = np.load(session / "ground_truth" / "body_vertices.npy")
-    plan = windows(T, window_frames(cfg), cfg.global_.window_overlap, cfg.global_.window_history)
+    plan = windows(T, cfg.global_.window_frames, cfg.global_.window_overlap, cfg.global_.window_history)
     seam = seam_jitter(np.load(out / "body_vertices.npy"), gt, FPS, plan)
     seam_pf = seam_jitter(np.load(out / "body" / "body_vertices.npy"), gt, FPS, plan)
     return {"before": before, "after": after, "s_per_frame": wall / T, "cpu_per_frame": cpu / T, "frames": T,

@@ -77,7 +77,7 @@ def bench_filters(fps: float = 30.0, T: int = 90, noise_m: float = 0.002, seed: 
 def bench_static_hold(frames: int, noise_m: float = 0.002, noise_rad: float = 0.002) -> dict:
     from intercap.config import Config
     from intercap.session import Session
-    from intercap.stages import physics
+    from intercap.stages.physics import stage as physics
     from intercap.synth.physics_cases import write_static_hold, write_tiny_camera_session
 
     tick = time.perf_counter()
@@ -147,7 +147,7 @@ SCRIPTS = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop")
 def bench_gt_motion(root: Path, scripts=SCRIPTS, fps: float = 30.0) -> list[dict]:
     """The physics stage on each script's ground-truth motion: residual root force (% body weight)."""
     from intercap.session import Session
-    from intercap.stages import physics
+    from intercap.stages.physics import stage as physics
 
     rows = []
     for script in scripts:

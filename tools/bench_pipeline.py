@@ -111,7 +111,7 @@ def import_stages() -> float:
 
     start = time.perf_counter()
     for module in ("prepare", "detect", "object", "body", "contact", "global_fit", "physics", "export"):
-        importlib.import_module(f"intercap.stages.{module}")
+        importlib.import_module(f"intercap.stages.{module}.stage")
     return time.perf_counter() - start
 
 

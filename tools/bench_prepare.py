@@ -73,7 +73,7 @@ def time_clouds(session_dir: Path) -> float:
     from intercap.config import PrepareConfig
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages.prepare import ViewClouds
+    from intercap.stages.prepare.stage import ViewClouds
 
     session = Session.load(session_dir)
     clouds = ViewClouds(session, Cameras.from_infos(session.cameras), PrepareConfig())

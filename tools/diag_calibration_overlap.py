@@ -38,7 +38,7 @@ def main(argv=None) -> None:
     from intercap.calib.alignment import local_planes, neighbour_pairs
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages.prepare import spread_frames
+    from intercap.stages.prepare.stage import spread_frames
 
     p = argparse.ArgumentParser(description=__doc__)
     p.add_argument("session", type=Path)

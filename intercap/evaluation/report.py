@@ -881,7 +881,7 @@ def fit_against_data_warning(global_metrics: dict, cfg, fps: float) -> str:
     ratio, limit = global_metrics.get("keypoint_energy_ratio"), cfg.global_.max_keypoint_energy_ratio
     if ratio is None or limit <= 0 or ratio <= limit:
         return ""
-    from intercap.stages.global_fit import data_disagreement
+    from intercap.stages.global_fit.stage import data_disagreement
 
     text = data_disagreement(ratio, fps)
     return f'<p class="warn">{html.escape(text[0].upper() + text[1:], quote=False)}.</p>'
@@ -890,7 +890,7 @@ def fit_against_data_warning(global_metrics: dict, cfg, fps: float) -> str:
 def unsynchronised_warning(global_metrics: dict, cfg) -> str:
     """A warning paragraph naming cameras whose frames lag or lead the others' past
     `global.max_camera_offset_ms` (calib.time_offsets)."""
-    from intercap.stages.global_fit import unsynchronised
+    from intercap.stages.global_fit.stage import unsynchronised
 
     text = unsynchronised(global_metrics.get("camera_time_offsets_ms") or {}, cfg.global_.max_camera_offset_ms)
     return f'<p class="warn">Cameras {html.escape(text, quote=False)}.</p>' if text else ""

@@ -235,7 +235,7 @@ def test_sample_session_exact_not_flagged_and_a_bumped_camera_named():
 
     from intercap.calib.alignment import suspect_cameras
     from intercap.config import PrepareConfig
-    from intercap.stages.prepare import check_views
+    from intercap.stages.prepare.stage import check_views
     from tools.bench_calibration_check import drift_transform, load_views
 
     cfg = PrepareConfig()
@@ -286,7 +286,7 @@ def test_a_view_that_shares_only_part_of_the_person_is_not_judged(tmp_path):
 
     from intercap.calib.alignment import unchecked_cameras
     from intercap.config import PrepareConfig
-    from intercap.stages.prepare import check_views
+    from intercap.stages.prepare.stage import check_views
     from intercap.synth.partial import crop_view
     from tools.bench_calibration_check import load_views
 

@@ -76,7 +76,7 @@ def test_an_object_held_where_contact_was_missed_is_no_flight():
 
     from intercap.config import GlobalConfig
     from intercap.geometry.ground import GroundPlane
-    from intercap.stages.global_fit import ObjectShape, PerFrameResults, free_flight
+    from intercap.stages.global_fit.stage import ObjectShape, PerFrameResults, free_flight
 
     poses, flight, _ = generator_flight("toss")
     tossed = poses[:, :3, 3] + np.random.default_rng(3).normal(0, 0.002, (len(poses), 3))
@@ -99,7 +99,7 @@ def test_an_object_held_where_contact_was_missed_is_no_flight():
     assert out["figures"]["flight_runs_held"] == [[lift, T - 1]]
 
     from intercap.evaluation.report import _physics_section
-    from intercap.stages.physics import flight_analysis
+    from intercap.stages.physics.stage import flight_analysis
 
     physics = flight_analysis(centres, contact, UP, FPS, 8, 0.05)
     assert len(physics["episodes"]) == 0 and physics["held"].tolist() == [[lift, T - 1]]
@@ -164,7 +164,7 @@ def test_prepare_without_a_floor_hands_gravity_to_the_flight(tmp_path, monkeypat
 
     from intercap.config import Config
     from intercap.session import Session
-    from intercap.stages import prepare
+    from intercap.stages.prepare import stage as prepare
 
     def no_floor(*args, **kwargs):
         raise ValueError("fit_ground_plane: no plane with >= 50 points within 0.015 m")
@@ -186,7 +186,7 @@ def test_global_stage_flight_labels_and_gravity_without_floor(with_ground):
 
     from intercap.config import GlobalConfig
     from intercap.geometry.ground import GroundPlane
-    from intercap.stages.global_fit import ObjectShape, PerFrameResults, free_flight
+    from intercap.stages.global_fit.stage import ObjectShape, PerFrameResults, free_flight
 
     tilt = Rotation.from_rotvec([0.3, 0.2, -1.0])
     poses, flight, touching = generator_flight("toss")

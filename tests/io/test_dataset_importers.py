@@ -16,7 +16,7 @@ from intercap.io.behave import import_behave
 from intercap.io.importing import DatasetImportError
 from intercap.io.intercap_dataset import calibration_set, import_intercap
 from intercap.session import Session, validate
-from intercap.stages.export import behave_frame_names
+from intercap.stages.export.stage import behave_frame_names
 
 FRAMES = 3
 SAMPLE = json.loads((SAMPLE_SESSION / "calibration.json").read_text())["cameras"]

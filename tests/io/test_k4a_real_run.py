@@ -13,8 +13,8 @@ from intercap.config import Config
 from intercap.io.k4a import import_k4a
 from intercap.pipeline import run_pipeline
 from intercap.session import validate
-from intercap.stages import physics
-from intercap.stages.detect import available_detectors
+from intercap.stages.physics import stage as physics
+from intercap.stages.detect.stage import available_detectors
 
 REC = Path(__file__).parents[2].parent / "shared" / "data" / "azure_kinect" / "recording.mkv"
 pytestmark = pytest.mark.skipif(not REC.exists(), reason=f"real Azure Kinect recording absent ({REC})")

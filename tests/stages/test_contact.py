@@ -7,7 +7,7 @@ from intercap.config import load_config
 from intercap.evaluation.metrics import contact_scores
 from intercap.pipeline import run_pipeline
 from intercap.session import Session
-from intercap.stages import contact
+from intercap.stages.contact import stage as contact
 
 GT = SAMPLE_SESSION / "ground_truth"
 

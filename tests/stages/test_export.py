@@ -13,7 +13,7 @@ from scipy.spatial.transform import Rotation
 from intercap.config import load_config
 from intercap.pipeline import run_pipeline
 from intercap.session import Session
-from intercap.stages import export
+from intercap.stages.export import stage as export
 
 GT = SAMPLE_SESSION / "ground_truth"
 NAN_BODY, NAN_OBJECT = 3, 5  # frames whose body / object result is NaN

@@ -19,8 +19,8 @@ from intercap.config import load_config
 from intercap.geometry.cameras import Cameras, project
 from intercap.io.files import save_npz, write_json
 from intercap.session import Session
-from intercap.stages import global_fit
-from intercap.stages.global_fit import GlobalFitter, ObjectShape, WindowData, windows
+from intercap.stages.global_fit import stage as global_fit
+from intercap.stages.global_fit.stage import GlobalFitter, ObjectShape, WindowData, windows
 
 GT = SAMPLE_SESSION / "ground_truth"
 
@@ -66,7 +66,7 @@ def exact_keypoints(model, params: BodyParams, cameras: Cameras) -> torch.Tensor
 def window_data(keypoints, R, t, shape, grasping, C, rows: bool = False) -> WindowData:
     """Keypoints only: no depth points, the object held by nothing but the terms under test.
     `rows`: the grasping frames found beforehand, as `Observations.window` finds them."""
-    from intercap.stages.body import BodyObservations
+    from intercap.stages.body.stage import BodyObservations
 
     W = len(R)
     obs = BodyObservations(np.arange(W), keypoints, torch.zeros(W, C, 1, 3), torch.zeros(W, C, 1, dtype=torch.bool))
@@ -372,11 +372,11 @@ def test_quality_figures_over_a_long_take_match_the_whole_take_definitions():
 def test_a_gpu_fits_longer_windows_than_the_cpu():
     """On CUDA a window's step costs its kernel launches whatever its length, so the global stage takes
     global.window_frames_gpu frames per window there, global.window_frames on the CPU."""
-    from intercap.stages.global_fit import window_frames
+    from intercap.config import resolved
 
     cpu = load_config(overrides=["global.window_frames=40", "global.window_frames_gpu=120"])
     gpu = load_config(overrides=["run.device=cuda:0", "global.window_frames=40", "global.window_frames_gpu=120"])
-    assert (window_frames(cpu), window_frames(gpu)) == (40, 120)
+    assert (resolved(cpu, 30).global_.window_frames, resolved(gpu, 30).global_.window_frames) == (40, 120)
 
 
 def test_an_object_never_tracked_leaves_the_body_results_standing(sample, tmp_path):

@@ -10,7 +10,7 @@ from intercap.config import Config
 from intercap.io.files import write_json
 from intercap.pipeline import run_pipeline
 from intercap.session import Session
-from intercap.stages import physics
+from intercap.stages.physics import stage as physics
 from intercap.synth.physics_cases import write_static_hold, write_tiny_camera_session
 
 T = 30

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from intercap.stages.physics import body_landmarks
+from intercap.stages.physics.stage import body_landmarks
 from intercap.synth import motions as mo
 from intercap.synth.generator import SynthConfig, cached_body_model
 

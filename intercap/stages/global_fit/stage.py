@@ -52,9 +52,10 @@ from intercap.energies.optim import minimise
 from intercap.geometry.cameras import Cameras
 from intercap.geometry.symmetry import mesh_symmetry, unwrap_symmetry
 from intercap.io.files import per_frame_result, publish, save_npz, write_json
-from intercap.parallel import Chunk, frame_chunks, on_gpu, run_chunks, shutdown, worker_count
+from intercap.parallel import shutdown, worker_count
+from intercap.stages.chunks import Chunk, frame_chunks, run_chunks
 from intercap.session.session import in_threads
-from intercap.stages.body import (
+from intercap.stages.body.stage import (
     PHASES,
     BodyFitter,
     BodyObservations,
@@ -179,7 +180,7 @@ def _rotvecs(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
 def load_contact_labels(out_dir: Path, T: int) -> tuple[np.ndarray, np.ndarray | None]:
     """Contact per frame (T,) and each hand's per-frame distance to the object (T, 2) metres, from the
     `contact` stage; the distances are None where only OUT/contact.npy exists (measured here then)."""
-    from intercap.stages.contact import load_contact
+    from intercap.stages.contact.stage import load_contact
 
     if (Path(out_dir) / "contact" / "contact.npz").exists():
         data = load_contact(out_dir)
@@ -505,7 +506,7 @@ class Observations:
     from the object masks (given or derived around the tracked pose) with depth."""
 
     def __init__(self, session, cfg, out_dir: Path, cameras: Cameras):
-        from intercap.stages.object import ObjectTracker
+        from intercap.stages.object.stage import ObjectTracker
 
         self.session, self.cfg = session, cfg
         self.device = cameras.K.device  # where the window's tensors go (the fit's device)
@@ -726,7 +727,7 @@ class GlobalProblem:
     the ground, free-flight episodes, the fitter and the observation loader."""
 
     def __init__(self, session, cfg, out_dir: Path):
-        from intercap.stages.prepare import load_ground
+        from intercap.stages.prepare.stage import load_ground
 
         g = cfg.global_
         torch.manual_seed(g.seed)
@@ -754,11 +755,6 @@ class GlobalProblem:
         self.observations = Observations(session, cfg, out_dir, self.cameras)
 
 
-def window_frames(cfg) -> int:
-    """Frames per window: `global.window_frames`, or `global.window_frames_gpu` on CUDA."""
-    return cfg.global_.window_frames_gpu if on_gpu(cfg) else cfg.global_.window_frames
-
-
 def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk: Chunk, queue) -> dict:
     """Fit frames [chunk.lo_context, chunk.hi_context) in overlapping windows, checkpointed after
     every window (OUT/global/progress_LO_HI.npz); returns rows [chunk.lo, chunk.hi) of the body
@@ -772,7 +768,7 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
     per_frame, shape = problem.per_frame, problem.shape
     lo, hi = chunk.lo_context, chunk.hi_context
     plan = [(a + lo, b + lo, fixed, commit + lo) for a, b, fixed, commit in
-            windows(hi - lo, window_frames(cfg), g.window_overlap, g.window_history)]
+            windows(hi - lo, g.window_frames, g.window_overlap, g.window_history)]
     fitted = per_frame.body.clone()
     device = problem.model.faces.device  # the windows are fitted there
     R_all = torch.as_tensor(per_frame.R, dtype=torch.float32, device=device)
@@ -877,7 +873,7 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
         if valid[i]:
             draw_overlay(session, keypoints[i], fid, cameras, stage_dir / "overlays" / f"body_{fid:06d}.jpg")
         if ok[i]:
-            from intercap.stages.object import draw_overlay as draw_object
+            from intercap.stages.object.stage import draw_overlay as draw_object
 
             draw_object(session, observations.tracker, fid, R_out[i], t_out[i],
                         stage_dir / "overlays" / f"object_{fid:06d}.jpg")

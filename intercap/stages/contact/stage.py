@@ -442,7 +442,7 @@ def object_held(session, cfg, per_frame, mesh, contact: np.ndarray, touching: np
     """`held_frames` on the per-frame object track, with the floor prepare found and the free-flight
     settings of the global stage (`global.flight_*`: the same test that keeps a flight a flight)."""
     from intercap.dynamics.flight import object_on_ground
-    from intercap.stages.prepare import load_ground
+    from intercap.stages.prepare.stage import load_ground
 
     g = cfg.global_
     plane = load_ground(out_dir)

@@ -73,7 +73,7 @@ from intercap.geometry.segmentation import (
 from intercap.geometry.symmetry import (axis_angle_matrix, equivalent_pose, mesh_symmetry, rotation_angle_deg,
                                         unwrap_symmetry)
 from intercap.io.files import publish, save_npz
-from intercap.parallel import Chunk, chunk_groups, lockstep, run_chunks
+from intercap.stages.chunks import Chunk, chunk_groups, lockstep, run_chunks
 from intercap.session.session import in_threads
 
 log = logging.getLogger(__name__)
@@ -220,7 +220,7 @@ class ObjectTracker:
         """Depth background per camera over `background_frames` frames, the person's pixels left out."""
         with self._lock:  # observations are read in threads (the global stage's windows)
             if self.backgrounds is None:
-                from intercap.stages.prepare import spread_frames
+                from intercap.stages.prepare.stage import spread_frames
 
                 frames = spread_frames(self.session.frame_ids, self.cfg.background_frames)
                 backgrounds = []

@@ -50,8 +50,8 @@ from intercap.energies.optim import minimise, minimise_per_frame
 from intercap.geometry.cameras import Cameras, _remove_intrinsics, pixel_rays, project, undistort
 from intercap.geometry.ground import up_hint_from_cameras
 from intercap.io.files import per_frame_result, publish, read_json, save_npy, save_npz
-from intercap.parallel import Chunk, lockstep, on_gpu, run_chunks
-from intercap.parallel import chunk_groups as parallel_chunk_groups
+from intercap.stages.chunks import Chunk, lockstep, run_chunks
+from intercap.stages.chunks import chunk_groups as parallel_chunk_groups
 from intercap.session.session import in_threads
 
 log = logging.getLogger(__name__)
@@ -105,7 +105,7 @@ class KeypointSource:
 
     def __init__(self, session, out_dir: Path, use_session: bool = True, cameras: Cameras | None = None,
                  view_check_px: float = 0.0):
-        from intercap.stages.detect import keypoints_path
+        from intercap.stages.detect.stage import keypoints_path
 
         self.session = session
         # `reject_disagreeing_views` when both set; on the CPU, as a GPU would take a launch (and a wait)
@@ -176,7 +176,7 @@ class PersonPoints:
         self.ground = None  # (point, normal) of the floor, when prepare found it (`still_mask`)
         self.still_views = 0  # view-frames whose mask `still_mask` made, so far
         if (Path(out_dir) / "prepare" / "ground.json").exists():
-            from intercap.stages.prepare import load_ground
+            from intercap.stages.prepare.stage import load_ground
 
             plane = load_ground(out_dir)
             self.ground = (np.asarray(plane.point, np.float64), np.asarray(plane.normal, np.float64))
@@ -189,7 +189,7 @@ class PersonPoints:
 
     def _backgrounds(self) -> list[np.ndarray]:
         from intercap.geometry.segmentation import background_depth
-        from intercap.stages.prepare import spread_frames
+        from intercap.stages.prepare.stage import spread_frames
 
         with self._lock:  # `batch`'s threads ask at once
             if self._background is None:
@@ -203,7 +203,7 @@ class PersonPoints:
     def object_mask(self, c: int, frame_id: int, shape) -> np.ndarray:
         mask = self.session.read_mask(c, frame_id, "object") if self.session.has_kind("mask_object")[c] else None
         if mask is None and self._object is not None:
-            from intercap.stages.object import hard_silhouettes
+            from intercap.stages.object.stage import hard_silhouettes
 
             vertices, faces, R, t, index = self._object
             i = index.get(frame_id)
@@ -1025,7 +1025,7 @@ def draw_overlay(session, keypoints: np.ndarray, frame_id: int, cameras: Cameras
 def world_up(session, out_dir: Path) -> np.ndarray:
     """(3,) unit up in the world frame: the ground plane's normal (given in session.yaml or fitted
     by `prepare`), else the cameras' mean -y axis. Never a world axis: rigs put the world anywhere."""
-    from intercap.stages.prepare import load_ground
+    from intercap.stages.prepare.stage import load_ground
 
     if (Path(out_dir) / "prepare" / "ground.json").exists():
         return load_ground(out_dir).normal
@@ -1077,14 +1077,9 @@ def upright_template(model, up: np.ndarray) -> BodyParams:
     return template
 
 
-def batch_frames(cfg) -> int:
-    """Frames fitted as one batch: `body.batch_frames`, or `body.batch_frames_gpu` on CUDA."""
-    return cfg.body.batch_frames_gpu if on_gpu(cfg) else cfg.body.batch_frames
-
-
 def chunk_groups(T: int, cfg) -> list[tuple[Chunk, ...]]:
-    """The take's body chunks dealt to the processes (`intercap.parallel.chunk_groups`), cut on batches."""
-    return parallel_chunk_groups(T, cfg, cfg.body, batch_frames(cfg))
+    """The take's body chunks dealt to the processes (`intercap.stages.chunks.chunk_groups`), cut on batches."""
+    return parallel_chunk_groups(T, cfg, cfg.body, cfg.body.batch_frames)
 
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
@@ -1150,7 +1145,7 @@ class ChunkWorkshop:
         person = PersonPoints(session, cameras, bcfg, out_dir)
         fitter = BodyFitter(model, cameras, bcfg)
         if (out_dir / "prepare" / "ground.json").exists():  # one view hides the legs: they must not sink through it
-            from intercap.stages.prepare import load_ground
+            from intercap.stages.prepare.stage import load_ground
 
             ground = load_ground(out_dir)
             fitter.ground = tuple(torch.as_tensor(x, dtype=torch.float32, device=cameras.K.device)
@@ -1246,7 +1241,7 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
         upright.shape[:] = torch.as_tensor(sized, dtype=upright.shape.dtype, device=upright.shape.device)
         fitter.shape_center = upright.shape[0].clone()
     template = upright  # the next batch starts from the last fit
-    size = batch_frames(workshop.cfg)
+    size = bcfg.batch_frames
     batches = [np.arange(s, min(s + size, T)) for s in range(0, T, size)]
     for batch in batches:
         if done[batch].all():

@@ -327,6 +327,54 @@ def view_frames(pool, per_frame: list, names: list[str], centers: np.ndarray, vo
     return [[f.result() for f in view] for view in futures]
 
 
+def observable_icp(source: list[_ViewFrame], target: list[_ViewFrame], matches: tuple, keep: np.ndarray,
+                   centre: np.ndarray, radius: float, max_distance: float, iterations: int, min_overlap: int,
+                   refine_mm: float, refine_deg: float):
+    """(T (4, 4), the correspondences (q, n, r, frames, sigma) under T) of robust point-to-plane ICP in the
+    observable directions `keep`, from identity and its correspondences `matches`; None when the overlap
+    falls below min_overlap.
+
+    One Gauss-Newton step from the calibrated pose measures a drift within max_distance directly.
+    Re-associating nearest neighbours on noisy slabs (depth noise of ~1-3 cm at 3-4 m) walks by
+    several mm on an exact calibration, so further ICP iterations only size a drift whose first
+    step is already clear evidence (above refine_mm / refine_deg)."""
+    q, n, r, fr, sg = matches
+    T = np.eye(4)
+    for it in range(iterations):
+        w = noise_weights(r, sg)
+        H, g = point_to_plane_system(q, n, r, w, centre, radius)
+        if keep.shape[1] == 0:
+            break
+        x = -keep @ np.linalg.solve(keep.T @ H @ keep, keep.T @ g)
+        step = np.linalg.norm(x)
+        if step > 0.3 * max_distance:  # a trust region: never jump past the correspondences that hold it
+            x *= 0.3 * max_distance / step
+        T = twist_transform(x, centre, radius) @ T
+        q, n, r, fr, sg = _correspondences(source, target, T, max_distance)
+        if len(r) < min_overlap:
+            return None
+        first_mm, first_deg = correction_size(T, centre)
+        if step < 1e-5 or (it == 0 and first_mm <= refine_mm and first_deg <= refine_deg):
+            break
+    return T, (q, n, r, fr, sg)
+
+
+def sandwich_covariance(q, n, r, fr, w, keep: np.ndarray, centre: np.ndarray, radius: float,
+                        block_size: float) -> tuple[np.ndarray, int]:
+    """(cov (6, 6) of the observable correction in scaled-twist units (metres), number of blocks):
+    the cluster-robust sandwich over (frame, block of block_size metres) clusters."""
+    J = np.hstack([np.cross(q - centre, n) / radius, n])  # (K, 6)
+    A = keep.T @ ((J * w[:, None]).T @ J) @ keep  # (k, k)
+    labels = block_labels(q, fr, block_size)
+    blocks = int(labels.max()) + 1
+    grad = np.zeros((blocks, 6))
+    np.add.at(grad, labels, J * (w * r)[:, None])
+    grad = grad @ keep  # (B, k)
+    meat = grad.T @ grad * blocks / max(blocks - 1, 1)
+    A_inv = np.linalg.inv(A) if keep.shape[1] else np.zeros((0, 0))
+    return keep @ A_inv @ meat @ A_inv @ keep.T, blocks
+
+
 def pair_agreement(
     source: list[_ViewFrame],
     target: list[_ViewFrame],
@@ -374,40 +422,15 @@ def pair_agreement(
     floor = bias_fraction * 1.4826 * float(np.median(np.abs(r - np.median(r))))
     refine_mm, refine_deg = max(min_mm, k_sigma * floor * 1000), max(min_deg, math.degrees(k_sigma * floor / radius))
 
-    T = np.eye(4)
-    # One Gauss-Newton step from the calibrated pose measures a drift within max_distance directly.
-    # Re-associating nearest neighbours on noisy slabs (depth noise of ~1-3 cm at 3-4 m) walks by
-    # several mm on an exact calibration, so further ICP iterations only size a drift whose first
-    # step is already clear evidence (above min_mm / min_deg and k_sigma x the noise floor).
-    for it in range(iterations):
-        w = noise_weights(r, sg)
-        H, g = point_to_plane_system(q, n, r, w, centre, radius)
-        if keep.shape[1] == 0:
-            break
-        x = -keep @ np.linalg.solve(keep.T @ H @ keep, keep.T @ g)
-        step = np.linalg.norm(x)
-        if step > 0.3 * max_distance:  # a trust region: never jump past the correspondences that hold it
-            x *= 0.3 * max_distance / step
-        T = twist_transform(x, centre, radius) @ T
-        q, n, r, fr, sg = _correspondences(source, target, T, max_distance)
-        if len(r) < min_overlap:
-            return PairAgreement(cam_a, cam_b, n_overlap, median_before, nan, nan, nan, 0.0)
-        first_mm, first_deg = correction_size(T, centre)
-        if step < 1e-5 or (it == 0 and first_mm <= refine_mm and first_deg <= refine_deg):
-            break
+    icp = observable_icp(source, target, (q, n, r, fr, sg), keep, centre, radius, max_distance, iterations,
+                         min_overlap, refine_mm, refine_deg)
+    if icp is None:
+        return PairAgreement(cam_a, cam_b, n_overlap, median_before, nan, nan, nan, 0.0)
+    T, (q, n, r, fr, sg) = icp
 
     # uncertainty of the observable correction: cluster-robust sandwich over (frame, block)
     w = noise_weights(r, sg)
-    J = np.hstack([np.cross(q - centre, n) / radius, n])  # (K, 6)
-    A = keep.T @ ((J * w[:, None]).T @ J) @ keep  # (k, k)
-    labels = block_labels(q, fr, block_size)
-    blocks = int(labels.max()) + 1
-    grad = np.zeros((blocks, 6))
-    np.add.at(grad, labels, J * (w * r)[:, None])
-    grad = grad @ keep  # (B, k)
-    meat = grad.T @ grad * blocks / max(blocks - 1, 1)
-    A_inv = np.linalg.inv(A) if keep.shape[1] else np.zeros((0, 0))
-    cov6 = keep @ A_inv @ meat @ A_inv @ keep.T  # (6, 6) in scaled-twist units (metres)
+    cov6, blocks = sandwich_covariance(q, n, r, fr, w, keep, centre, radius, block_size)
     x6 = keep @ keep.T @ scaled_twist(T, centre, radius)
     significance = float(np.sqrt(max(x6 @ np.linalg.pinv(cov6, hermitian=True) @ x6, 0.0))) if keep.shape[1] else 0.0
     # a full 6-dof Gauss-Newton step from here: diagnostic only (it slides along free directions)
@@ -420,27 +443,13 @@ def pair_agreement(
     flagged = judged and bool((mm > min_mm and mm > k_sigma * sigma_mm)
                               or (deg > min_deg and deg > k_sigma * sigma_deg))
     return PairAgreement(
-        cam_a=cam_a,
-        cam_b=cam_b,
-        overlap_points=n_overlap,
-        median_distance_mm=median_before,
-        icp_rmse_mm=float(np.sqrt(np.mean(r**2)) * 1000),
-        correction_rotation_deg=deg,
-        correction_translation_mm=mm,
-        fitness=float(len(r) / max(n_source, 1)),
-        correction=T.copy(),
-        observable_rotation_deg=deg,
-        observable_translation_mm=mm,
-        full_rotation_deg=float(np.degrees(np.linalg.norm(x_full[:3]) / radius)),
-        full_translation_mm=float(np.linalg.norm(x_full[3:]) * 1000),
-        unobservable=describe_directions(drop),
-        translation_sigma_mm=sigma_mm,
-        rotation_sigma_deg=sigma_deg,
-        observable_dof=int(keep.shape[1]),
-        significance=significance,
-        flagged=flagged,
-        blocks=blocks,
-        judged=judged,
+        cam_a=cam_a, cam_b=cam_b, overlap_points=n_overlap, median_distance_mm=median_before,
+        icp_rmse_mm=float(np.sqrt(np.mean(r**2)) * 1000), correction_rotation_deg=deg, correction_translation_mm=mm,
+        fitness=float(len(r) / max(n_source, 1)), correction=T.copy(), observable_rotation_deg=deg,
+        observable_translation_mm=mm, full_rotation_deg=float(np.degrees(np.linalg.norm(x_full[:3]) / radius)),
+        full_translation_mm=float(np.linalg.norm(x_full[3:]) * 1000), unobservable=describe_directions(drop),
+        translation_sigma_mm=sigma_mm, rotation_sigma_deg=sigma_deg, observable_dof=int(keep.shape[1]),
+        significance=significance, flagged=flagged, blocks=blocks, judged=judged,
     )
 
 
@@ -519,6 +528,35 @@ def consensus(x: np.ndarray, k: float = 3.0, floor: float = 1e-3) -> np.ndarray:
     return x[distance <= max(k * float(np.median(distance)), floor)].mean(axis=0)
 
 
+def rig_pair_system(frames: list, T: np.ndarray, pair: tuple[int, int], max_distance: float, min_overlap: int,
+                    centre: np.ndarray, radius: float):
+    """(a, b, H, g, weighted RMS residual) of the ordered view pair (a, b) under the poses' corrections
+    T (C, 4, 4), in world coordinates; None when they overlap in fewer than min_overlap points."""
+    a, b = pair
+    q, n, r, _, sg = _correspondences(frames[a], frames[b], np.linalg.inv(T[b]) @ T[a], max_distance)
+    if len(r) < min_overlap:
+        return None
+    w = noise_weights(r, sg)
+    q, n = q @ T[b][:3, :3].T + T[b][:3, 3], n @ T[b][:3, :3].T  # b's frame of reference -> the world now
+    H, g = point_to_plane_system(q, n, r, w, centre, radius)
+    return a, b, H, g, float(np.sqrt((w * r * r).sum() / max(w.sum(), 1e-12)))
+
+
+def rig_normal_equations(systems: list, C: int) -> tuple[np.ndarray, np.ndarray]:
+    """(H (6C, 6C), g (6C,)) of all pairs' systems: r moves with +J under a's twist, -J under b's."""
+    H = np.zeros((6 * C, 6 * C))
+    g = np.zeros(6 * C)
+    for a, b, Hp, gp, _ in systems:
+        ia, ib = slice(6 * a, 6 * a + 6), slice(6 * b, 6 * b + 6)
+        H[ia, ia] += Hp
+        H[ib, ib] += Hp
+        H[ia, ib] -= Hp
+        H[ib, ia] -= Hp
+        g[ia] += gp
+        g[ib] -= gp
+    return H, g
+
+
 def refine_rig(
     points_per_view: list,
     names: list[str],
@@ -563,27 +601,11 @@ def refine_rig(
         residuals, used, steps = [], 0, 0
 
         def pair_system(pair):
-            a, b = pair
-            q, n, r, _, sg = _correspondences(frames[a], frames[b], np.linalg.inv(T[b]) @ T[a], max_distance)
-            if len(r) < min_overlap:
-                return None
-            w = noise_weights(r, sg)
-            q, n = q @ T[b][:3, :3].T + T[b][:3, 3], n @ T[b][:3, :3].T  # b's frame of reference -> the world now
-            H, g = point_to_plane_system(q, n, r, w, centre, radius)
-            return a, b, H, g, float(np.sqrt((w * r * r).sum() / max(w.sum(), 1e-12)))
+            return rig_pair_system(frames, T, pair, max_distance, min_overlap, centre, radius)
 
         for steps in range(1, iterations + 1):
-            H = np.zeros((6 * C, 6 * C))
-            g = np.zeros(6 * C)
             systems = [s for s in pool.map(pair_system, pairs) if s is not None]
-            for a, b, Hp, gp, _ in systems:  # r moves with +J under a's twist, -J under b's
-                ia, ib = slice(6 * a, 6 * a + 6), slice(6 * b, 6 * b + 6)
-                H[ia, ia] += Hp
-                H[ib, ib] += Hp
-                H[ia, ib] -= Hp
-                H[ib, ia] -= Hp
-                g[ia] += gp
-                g[ib] -= gp
+            H, g = rig_normal_equations(systems, C)
             residuals.append(float(np.mean([s[4] for s in systems])) if systems else float("nan"))
             used = len(systems)
             if not systems:

@@ -1,7 +1,11 @@
-"""One configuration tree for the whole pipeline.
+"""One configuration tree for the whole pipeline: its assembly, overrides and validation.
 
-Defaults live in the dataclasses below; a YAML file and ``section.key=value``
-overrides from the command line change them; every results folder gets the
+Each stage's section is a dataclass beside the stage, in ``intercap/stages/<stage>/config.py``:
+``prepare`` (PrepareConfig), ``detect`` (DetectConfig), ``object`` (ObjectConfig), ``body``
+(BodyConfig), ``contact`` (ContactConfig), ``global`` (GlobalConfig, in ``stages/global_fit``),
+``physics`` (PhysicsConfig) and ``export`` (ExportConfig). The sections that are no stage live
+here: ``body_model``, ``report`` and ``run``. Defaults are the dataclasses'; a YAML file and
+``section.key=value`` overrides from the command line change them; every results folder gets the
 tree it was produced with (``OUT/config.yaml``).
 """
 from __future__ import annotations
@@ -29,8 +33,8 @@ class BodyModelConfig:
 
     name: str = "anny"  # "anny" (default, ships with its package) or "smplx"
     cache_dir: str | None = None  # anny's cache folder; None: $ANNY_CACHE_DIR or ~/.cache/anny
-    smplx_model_dir: str | None = None  # folder holding SMPLX_NEUTRAL.npz etc.
-    dtype: str = "float32"
+    smplx_model_dir: str | None = None  # folder holding SMPLX_NEUTRAL.npz etc. (smplx only)
+    dtype: str = "float32"  # the model's tensors, a torch dtype name: float32 or float64
 
 
 @dataclass
@@ -38,14 +42,15 @@ class ReportConfig:
     """Mesh overlays and the HTML report written at the end of `intercap run`."""
 
     enabled: bool = True  # `intercap run` writes OUT/report/index.html after the stages
-    overlay_stages: list[str] = field(default_factory=lambda: ["object", "body", "global"])
+    overlay_stages: list[str] = field(default_factory=lambda: ["object", "body", "global"])  # stages drawn over images
     overlay_every: int = 10  # mesh overlays of every n-th frame, in every view
-    alpha: float = 0.6  # opacity of the rendered meshes over the colour images
+    alpha: float = 0.6  # opacity (0..1) of the rendered meshes over the colour images
     video: bool = True  # a video of one camera over the whole sequence (the last stage that ran)
     video_camera: str = ""  # camera name for the video; "" = the first camera
-    video_codec: str = "vp9"  # vp9 (WebM: plays in every browser) or h264 (MP4: needs a browser with proprietary codecs)
+    # vp9 (WebM: plays in every browser) or h264 (MP4: needs a browser with proprietary codecs)
+    video_codec: str = "vp9"
     thumbnail_width: int = 200  # pixels; thumbnails are embedded, the full images sit beside the page
-    heatmap_distance_m: float = 0.02  # contact heat map: a vertex this close to the object touches it
+    heatmap_distance_m: float = 0.02  # contact heat map: a vertex this close (m) to the object touches it
     points_per_view: int = 300  # depth points per view for the cloud-to-fit curves
     max_frames: int = 600  # geometric per-frame curves use at most this many frames, evenly spread
 
@@ -54,18 +59,22 @@ class ReportConfig:
 class RunConfig:
     """What `intercap run` does."""
 
-    stages: list[str] = field(default_factory=list)  # empty: every built stage
-    device: str = "cpu"
+    stages: list[str] = field(default_factory=list)  # stages to run (in pipeline order); empty: every built stage
+    device: str = "cpu"  # torch device for the fits: cpu, cuda or cuda:N
     force: bool = False  # recompute stages whose output is already saved
-    workers: int = 0  # processes the fitting stages cut a take into (0: one per CPU core; on a GPU, one; N > 1 share it)
+    # processes the fitting stages cut a take into (0: one per CPU core; on a GPU, one; N > 1 share it)
+    workers: int = 0
     min_frames_per_worker: int = 48  # a take shorter than twice this runs in one process
-    dense_fps: float = 20.0  # sessions at this frame rate and above take the fits' *_dense budgets (`for_frame_rate`)
+    dense_fps: float = 20.0  # sessions at this frame rate (Hz) and above take the *_dense settings (`resolved`)
     deterministic: bool = True  # on the CPU the same numbers every run (`parallel.repeatable`)
     frame_cache: bool = True  # decode depth and masks once a run into OUT/cache/frames/ (`session.frame_cache`)
 
 
 @dataclass
 class Config:
+    """The whole tree: one section per stage (each defined beside its stage, `intercap/stages/<stage>/config.py`)
+    and the three that are not stages (body model, report, run). This module only assembles and validates it."""
+
     body_model: BodyModelConfig = field(default_factory=BodyModelConfig)
     prepare: PrepareConfig = field(default_factory=PrepareConfig)
     detect: DetectConfig = field(default_factory=DetectConfig)

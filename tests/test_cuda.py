@@ -110,15 +110,10 @@ def test_body_fit_energies_on_gpu_match_cpu(models, tmp_path):
     from intercap.config import BodyConfig
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages.body.stage import (
-        PHASES,
-        BodyFitter,
-        BodyObservations,
-        KeypointSource,
-        PersonPoints,
-        upright_template,
-        world_up,
-    )
+    from intercap.stages.body.fitter import BodyFitter, upright_template
+    from intercap.stages.body.observations import BodyObservations, KeypointSource, PersonPoints
+    from intercap.stages.body.stage import world_up
+    from intercap.stages.body.terms import DEPTH_TERM, PHASES
 
     session = Session.load(SAMPLE_SESSION)
     bcfg = BodyConfig()
@@ -146,7 +141,7 @@ def test_body_fit_energies_on_gpu_match_cpu(models, tmp_path):
         assert abs(agree - 1) < 0.02, f"{pairs} depth correspondences on the GPU, {len(matches.vertex)} on the CPU"
         expected = fc.energy_terms(pc, oc, terms, matches)
         got = fg.energy_terms(pc.to(DEVICE), og, terms, matches.to(DEVICE))
-        close(fg.energy_terms(pc.to(DEVICE), og, ["depth"], on_gpu)["depth"], expected["depth"],
+        close(fg.energy_terms(pc.to(DEVICE), og, [DEPTH_TERM], on_gpu)["depth"], expected["depth"],
               "E_D with the GPU's own correspondences", rtol=0.02)
     assert set(got) == set(expected)
     for name in expected:
@@ -193,11 +188,12 @@ def test_body_fit_replayed_from_cuda_graphs_is_the_eager_fit(models, tmp_path, m
     import dataclasses
 
     from intercap.energies import optim
-    from intercap.stages.body import stage as body
+    from intercap.stages.body import fitter as body
+    from intercap.stages.body.stage import world_up
 
     _, model = models
     session, bcfg, cameras, obs = gpu_observations(tmp_path, 6)
-    template = body.upright_template(model, body.world_up(session, tmp_path))
+    template = body.upright_template(model, world_up(session, tmp_path))
     keypoints, replays = {}, []
     replay = torch.cuda.CUDAGraph.replay
     monkeypatch.setattr(torch.cuda.CUDAGraph, "replay", lambda graph: replays.append(1) or replay(graph))
@@ -217,7 +213,8 @@ def test_failed_fit_is_refitted_on_gpu(models, tmp_path):
     """The body stage's tracking path (fit-to-data, four-heading refit, energy choice) runs on the GPU:
     the sample's frame 0 turned round and 0.4 m off is brought back onto its depth points."""
     from intercap.body_models import BodyParams
-    from intercap.stages.body import stage as body
+    from intercap.body_models.base import axis_angle_to_matrix
+    from intercap.stages.body import fitter as body
 
     _, model = models
     _, bcfg, cameras, obs = gpu_observations(tmp_path, 1)
@@ -225,7 +222,7 @@ def test_failed_fit_is_refitted_on_gpu(models, tmp_path):
     wrong = truth.to(DEVICE)
     with torch.no_grad():
         centre = model(wrong).joints[:, 0]
-        body.turn_about(wrong, body.axis_angle_to_matrix(torch.tensor([[0.0, 0.0, np.pi]], device=DEVICE)), centre)
+        body.turn_about(wrong, axis_angle_to_matrix(torch.tensor([[0.0, 0.0, np.pi]], device=DEVICE)), centre)
         wrong.transl += torch.tensor([0.4, 0.0, 0.0], device=DEVICE)
     fitter = body.BodyFitter(model, cameras, bcfg)
     energy = body.frame_energy(fitter, fitter.final_terms(wrong, obs))
@@ -237,7 +234,7 @@ def test_failed_fit_is_refitted_on_gpu(models, tmp_path):
 
 
 def keypoints_of(session, out_dir, ids, bcfg) -> np.ndarray:
-    from intercap.stages.body.stage import KeypointSource
+    from intercap.stages.body.observations import KeypointSource
 
     return KeypointSource(session, out_dir).batch(ids, bcfg.min_keypoint_confidence)
 
@@ -247,7 +244,7 @@ def gpu_observations(tmp_path, frames: int):
     from intercap.config import BodyConfig
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages.body import stage as body
+    from intercap.stages.body import observations as body
 
     session = Session.load(SAMPLE_SESSION)
     bcfg = BodyConfig()
@@ -266,7 +263,7 @@ def test_object_fits_side_by_side_on_gpu_match_cpu(monkeypatch):
     from intercap.config import load_config
     from intercap.energies import optim
     from intercap.session import Session
-    from intercap.stages.object.stage import ObjectTracker, axis_rotation
+    from intercap.stages.object.fitter import ObjectTracker, axis_rotation
 
     replays = []
     replay = torch.cuda.CUDAGraph.replay

@@ -56,7 +56,7 @@ def point_cloud_distances_mm(session_dir: Path, out_dir: Path) -> tuple[np.ndarr
     from intercap.geometry.cameras import Cameras
     from intercap.geometry.surfaces import TriangleSurface
     from intercap.session import Session
-    from intercap.stages.body.stage import PersonPoints
+    from intercap.stages.body.observations import PersonPoints
 
     session = Session.load(session_dir)
     cfg = Config().body

@@ -87,7 +87,7 @@ def score(out: Path, session: Path) -> dict:
 def run_session(name: str, root: Path, overrides: list[str], width: int, height: int) -> dict:
     from intercap.config import load_config
     from intercap.pipeline import available_stages, run_pipeline
-    from intercap.stages.global_fit.stage import windows
+    from intercap.stages.global_fit.fitter import windows
 
     session = make_session(name, root, width, height)
     out = root / f"out_{name}"

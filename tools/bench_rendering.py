@@ -1,4 +1,4 @@
-"""Benchmark the differentiable renderer (`intercap.rendering.render`).
+"""Benchmark the differentiable renderer (`intercap.geometry.rendering.render`).
 
 For a 12-face box, a 512-face cylinder and the synthetic objects (box 2048,
 cup 1664, chair 2400 faces), in 640x576 views with Azure-Kinect-like rational

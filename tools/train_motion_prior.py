@@ -14,7 +14,7 @@ Steps:
    translation from CMU's forward kinematics) and skinned at the marker vertices only (linear
    blend skinning of anny, checked against the full model).
 3. Both 30 fps phases (even and odd 60 fps frames) of every glitch-free stretch of at least
-   WINDOW frames become training sequences: velocity features of intercap.motion_prior (heading
+   WINDOW frames become training sequences: velocity features of intercap.energies.motion_prior (heading
    frame, m/s), plus their left-right mirror images.
 4. A temporal convolutional autoencoder per prior: loss = reconstruction MSE of the clean windows
    and of jittered copies (i.i.d. position jitter, sigma up to --noise-mm) + w_smooth * mean

@@ -4,7 +4,7 @@
     python tools/train_pose_prior.py --anatomy-only       # only intercap/data/anny_anatomy.npz
 
 Steps: measure the anatomical joint frames on anny's rest skeleton
-(`intercap.priors.anatomy_from_model`); read every CMU clip, drop capture
+(`intercap.energies.priors.anatomy_from_model`); read every CMU clip, drop capture
 glitches, retarget every `--step`-th frame to anny (tools/cmu_mocap.py); report
 how often real poses leave the joint limits; fit a Gaussian mixture on the
 learned features of the training clips (mirrored copies added, so the prior is
@@ -41,9 +41,9 @@ MAJOR_JOINTS = ("head", "clavicle", "shoulder", "elbow", "wrist", "hip", "knee",
 def write_anatomy(model, path: Path = priors.ANATOMY_FILE) -> dict:
     """Measure the joint frames on anny's rest skeleton and save them."""
     if list(model.body_joint_names) != list(priors.ANNY_BODY_BONES):
-        raise ValueError("anny's body bones differ from intercap.priors.ANNY_BODY_BONES; update the table")
+        raise ValueError("anny's body bones differ from intercap.energies.priors.ANNY_BODY_BONES; update the table")
     if list(model.hand_joint_names) != list(priors.HAND_BONES):
-        raise ValueError("anny's hand bones differ from intercap.priors.HAND_BONES; update the table")
+        raise ValueError("anny's hand bones differ from intercap.energies.priors.HAND_BONES; update the table")
     anatomy = priors.anatomy_from_model(model)
     path.parent.mkdir(parents=True, exist_ok=True)
     np.savez(path, **anatomy)
@@ -137,7 +137,7 @@ def fit_gmm(
 
 
 def precision_cholesky(covs: np.ndarray) -> np.ndarray:
-    """(K, D, D) covariances -> L with L L^T = Sigma^-1 (what intercap.priors.learned_pose_prior reads)."""
+    """(K, D, D) covariances -> L with L L^T = Sigma^-1 (what intercap.energies.priors.learned_pose_prior reads)."""
     return np.linalg.cholesky(np.linalg.inv(covs))
 
 

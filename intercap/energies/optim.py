@@ -239,106 +239,18 @@ def _lbfgs_rows(variables, energy_fn, max_steps, inner_iterations, ftol, gtol, h
                 monitor, graph, one_problem: bool = False) -> MinimiseResult:
     """`minimise_per_frame`'s L-BFGS; `one_problem`: all variables together are one row (B = 1).
 
-    Its state lives in tensors changed in place only, and each part of an iteration (the direction,
-    an evaluation, a trial's verdict, the step) is a function of that state alone: with `graph` on
-    CUDA each replays a recorded graph (`recorded`), so an iteration costs a few launches, not the
+    Its state lives in tensors changed in place only (`RowLBFGS`), and each part of an iteration (the
+    direction, an evaluation, a trial's verdict, the step) is a function of that state alone: with `graph`
+    on CUDA each replays a recorded graph (`recorded`), so an iteration costs a few launches, not the
     hundred kernels of its bookkeeping. The host reads one flag per iteration (and per extra trial)."""
-    variables = [v.requires_grad_(True) for v in variables]
-    device = variables[0].device
-    B = 1 if one_problem else int(variables[0].shape[0])
-    sizes = [v.numel() if one_problem else v[0].numel() for v in variables]
-    x = torch.cat([v.detach().reshape(B, -1) for v in variables], 1)  # where the frames are
-    point = x.clone()  # where the next evaluation is
-    f, g = x.new_zeros(B), torch.zeros_like(x)  # energy and gradient at x
-    f_try, g_try = f.clone(), g.clone()  # at point
-    f_new, g_new = f.clone(), g.clone()  # at the accepted trial
-    d = torch.zeros_like(x)  # the direction
-    slope, length, scale = f.clone(), f.clone(), torch.full_like(f, math.nan)  # scale: s.y / y.y, newest good pair
-    trial = torch.ones_like(f)  # each frame's next trial step length
-    previous = torch.full_like(f, math.inf)  # the energy at the last step's start
-    moving, inner, pending = (torch.ones(B, dtype=torch.bool, device=device) for _ in range(3))
-    memory = PairMemory(B, x.shape[1], history_size, x)
+    state = RowLBFGS(variables, energy_fn, ftol, gtol, history_size, one_problem)
+    x, f, moving, inner, pending = state.x, state.f, state.moving, state.inner, state.pending
     evaluations = 0
-
-    def place(at: torch.Tensor) -> None:
-        """The variables take the values of `at` (B, n)."""
-        with torch.no_grad():
-            for v, part in zip(variables, at.split(sizes, 1)):
-                v.copy_(part.view_as(v))
-
-    def evaluation() -> None:
-        """f_try, g_try: energy and gradient at `point`."""
-        place(point)
-        energy, grads = energy_and_gradients(variables, energy_fn)
-        f_try.copy_(energy)
-        g_try.copy_(torch.cat([d.reshape(B, -1) for d in grads], 1))
-
-    @torch.no_grad()
-    def start() -> None:
-        """A step starts at x (evaluated: the correspondences may have changed since the last step):
-        frames whose energy settled since the last step's start, or whose gradient vanished, stop."""
-        f.copy_(f_try)
-        g.copy_(g_try)
-        finite = torch.isfinite(f)
-        moving.logical_and_(finite & (g.abs().amax(1) >= gtol))
-        settled = (previous - f) <= ftol * torch.maximum(torch.maximum(previous.abs(), f.abs()), torch.ones_like(f))
-        moving.logical_and_(~(settled & torch.isfinite(previous)))
-        previous.copy_(torch.where(finite, f, previous))
-        inner.copy_(moving)
-        trial.fill_(1.0)
-
-    @torch.no_grad()
-    def direct() -> None:
-        """Each frame's direction from its own history (steepest descent where that is not downhill),
-        and its first trial point."""
-        first = torch.clamp(1.0 / g.abs().sum(1).clamp(min=1e-30), max=1.0)  # torch's first step: |g|_1 <= 1
-        q = -memory.inverse_hessian_times(g, torch.where(torch.isnan(scale), first, scale))
-        q = torch.where(inner[:, None], q, torch.zeros_like(q))
-        uphill = inner & ((g * q).sum(1) >= 0)  # not a descent direction (a poor history): steepest descent
-        d.copy_(torch.where(uphill[:, None], -g * first[:, None], q))
-        slope.copy_((g * d).sum(1))
-        length.copy_(trial)
-        pending.copy_(inner)
-        f_new.copy_(f)
-        g_new.copy_(g)
-        point.copy_(x + length[:, None] * d)
-
-    @torch.no_grad()
-    def judge() -> None:
-        """Armijo's test of each pending frame's trial; a failed one backtracks to the minimum of the
-        quadratic through f, the slope and the trial (within [0.1, 0.5] of its length): the next point."""
-        ok = pending & torch.isfinite(f_try) & (f_try <= f + 1e-4 * length * slope)
-        f_new.copy_(torch.where(ok, f_try, f_new))
-        g_new.copy_(torch.where(ok[:, None], g_try, g_new))
-        pending.logical_and_(~ok)
-        excess = torch.nan_to_num(f_try - f - length * slope, nan=math.inf, posinf=math.inf)
-        shrunk = -slope * length**2 / (2 * excess.clamp(min=1e-30))
-        length.copy_(torch.where(pending, torch.minimum(torch.maximum(shrunk, 0.1 * length), 0.5 * length), length))
-        point.copy_(x + length[:, None] * d)
-
-    @torch.no_grad()
-    def advance() -> None:
-        """The frames whose trial passed move and remember the pair; a frame still backtracking tries
-        its shorter step at the next iteration; frames that arrived stop."""
-        taken = inner & ~pending
-        trial.copy_(torch.where(taken, torch.ones_like(trial), length))
-        s = torch.where(taken, length, torch.zeros_like(length))[:, None] * d
-        y = g_new - g
-        sy = (s * y).sum(1)
-        good = taken & (sy > 1e-10)
-        memory.push(s, y, good)
-        scale.copy_(torch.where(good, sy / (y * y).sum(1).clamp(min=1e-30), scale))
-        x.add_(s)
-        inner.logical_and_((g_new.abs().amax(1) >= gtol) & ~(taken & ((f - f_new).abs() <= 1e-12 * f.abs().clamp(min=1.0))))
-        inner.logical_and_(trial > 1e-10)  # a frame no step length lowers has arrived (or its energy is not finite)
-        f.copy_(f_new)
-        g.copy_(g_new)
-
-    evaluate, start, direct, judge, advance = (recorded(part, graph, device)
-                                               for part in (evaluation, start, direct, judge, advance))
+    evaluate, start, direct, judge, advance = (recorded(part, graph, state.device) for part in (
+        state.evaluation, state.start, state.direct, state.judge, state.advance))
     stopped, step = "max_steps", 0
     for step in range(1, max_steps + 1):
-        point.copy_(x)
+        state.point.copy_(x)
         evaluate()
         evaluations += 1
         start()
@@ -358,10 +270,115 @@ def _lbfgs_rows(variables, energy_fn, max_steps, inner_iterations, ftol, gtol, h
                 break
         if monitor is not None:
             monitor(step, float(f.sum()))
-    place(x)
+    state.place(x)
     with torch.no_grad():
         final = float(energy_fn().sum())
     return MinimiseResult(final, step, evaluations, stopped)
+
+
+class RowLBFGS:
+    """The state of `_lbfgs_rows`' B independent L-BFGS problems, in tensors changed in place only, and
+    the parts of an iteration, each a function of that state alone (so `recorded` can replay it)."""
+
+    def __init__(self, variables, energy_fn, ftol: float, gtol: float, history_size: int, one_problem: bool):
+        self.variables = variables = [v.requires_grad_(True) for v in variables]
+        self.energy_fn, self.ftol, self.gtol = energy_fn, ftol, gtol
+        self.device = device = variables[0].device
+        self.B = B = 1 if one_problem else int(variables[0].shape[0])
+        self.sizes = [v.numel() if one_problem else v[0].numel() for v in variables]
+        self.x = x = torch.cat([v.detach().reshape(B, -1) for v in variables], 1)  # where the frames are
+        self.point = x.clone()  # where the next evaluation is
+        self.f, self.g = f, g = x.new_zeros(B), torch.zeros_like(x)  # energy and gradient at x
+        self.f_try, self.g_try = f.clone(), g.clone()  # at point
+        self.f_new, self.g_new = f.clone(), g.clone()  # at the accepted trial
+        self.d = torch.zeros_like(x)  # the direction
+        # scale: s.y / y.y of the newest good pair
+        self.slope, self.length, self.scale = f.clone(), f.clone(), torch.full_like(f, math.nan)
+        self.trial = torch.ones_like(f)  # each frame's next trial step length
+        self.previous = torch.full_like(f, math.inf)  # the energy at the last step's start
+        self.moving, self.inner, self.pending = (torch.ones(B, dtype=torch.bool, device=device) for _ in range(3))
+        self.memory = PairMemory(B, x.shape[1], history_size, x)
+
+    def place(self, at: torch.Tensor) -> None:
+        """The variables take the values of `at` (B, n)."""
+        with torch.no_grad():
+            for v, part in zip(self.variables, at.split(self.sizes, 1)):
+                v.copy_(part.view_as(v))
+
+    def evaluation(self) -> None:
+        """f_try, g_try: energy and gradient at `point`."""
+        self.place(self.point)
+        energy, grads = energy_and_gradients(self.variables, self.energy_fn)
+        self.f_try.copy_(energy)
+        self.g_try.copy_(torch.cat([grad.reshape(self.B, -1) for grad in grads], 1))
+
+    @torch.no_grad()
+    def start(self) -> None:
+        """A step starts at x (evaluated: the correspondences may have changed since the last step):
+        frames whose energy settled since the last step's start, or whose gradient vanished, stop."""
+        f, g, previous, moving = self.f, self.g, self.previous, self.moving
+        f.copy_(self.f_try)
+        g.copy_(self.g_try)
+        finite = torch.isfinite(f)
+        moving.logical_and_(finite & (g.abs().amax(1) >= self.gtol))
+        settled = (previous - f) <= self.ftol * torch.maximum(torch.maximum(previous.abs(), f.abs()),
+                                                              torch.ones_like(f))
+        moving.logical_and_(~(settled & torch.isfinite(previous)))
+        previous.copy_(torch.where(finite, f, previous))
+        self.inner.copy_(moving)
+        self.trial.fill_(1.0)
+
+    @torch.no_grad()
+    def direct(self) -> None:
+        """Each frame's direction from its own history (steepest descent where that is not downhill),
+        and its first trial point."""
+        g, d, inner, scale = self.g, self.d, self.inner, self.scale
+        first = torch.clamp(1.0 / g.abs().sum(1).clamp(min=1e-30), max=1.0)  # torch's first step: |g|_1 <= 1
+        q = -self.memory.inverse_hessian_times(g, torch.where(torch.isnan(scale), first, scale))
+        q = torch.where(inner[:, None], q, torch.zeros_like(q))
+        uphill = inner & ((g * q).sum(1) >= 0)  # not a descent direction (a poor history): steepest descent
+        d.copy_(torch.where(uphill[:, None], -g * first[:, None], q))
+        self.slope.copy_((g * d).sum(1))
+        self.length.copy_(self.trial)
+        self.pending.copy_(inner)
+        self.f_new.copy_(self.f)
+        self.g_new.copy_(g)
+        self.point.copy_(self.x + self.length[:, None] * d)
+
+    @torch.no_grad()
+    def judge(self) -> None:
+        """Armijo's test of each pending frame's trial; a failed one backtracks to the minimum of the
+        quadratic through f, the slope and the trial (within [0.1, 0.5] of its length): the next point."""
+        f, f_try, length, slope, pending = self.f, self.f_try, self.length, self.slope, self.pending
+        ok = pending & torch.isfinite(f_try) & (f_try <= f + 1e-4 * length * slope)
+        self.f_new.copy_(torch.where(ok, f_try, self.f_new))
+        self.g_new.copy_(torch.where(ok[:, None], self.g_try, self.g_new))
+        pending.logical_and_(~ok)
+        excess = torch.nan_to_num(f_try - f - length * slope, nan=math.inf, posinf=math.inf)
+        shrunk = -slope * length**2 / (2 * excess.clamp(min=1e-30))
+        length.copy_(torch.where(pending, torch.minimum(torch.maximum(shrunk, 0.1 * length), 0.5 * length), length))
+        self.point.copy_(self.x + length[:, None] * self.d)
+
+    @torch.no_grad()
+    def advance(self) -> None:
+        """The frames whose trial passed move and remember the pair; a frame still backtracking tries
+        its shorter step at the next iteration; frames that arrived stop."""
+        f, g, f_new, g_new, inner, trial, length = (self.f, self.g, self.f_new, self.g_new, self.inner, self.trial,
+                                                    self.length)
+        taken = inner & ~self.pending
+        trial.copy_(torch.where(taken, torch.ones_like(trial), length))
+        s = torch.where(taken, length, torch.zeros_like(length))[:, None] * self.d
+        y = g_new - g
+        sy = (s * y).sum(1)
+        good = taken & (sy > 1e-10)
+        self.memory.push(s, y, good)
+        self.scale.copy_(torch.where(good, sy / (y * y).sum(1).clamp(min=1e-30), self.scale))
+        self.x.add_(s)
+        inner.logical_and_((g_new.abs().amax(1) >= self.gtol)
+                           & ~(taken & ((f - f_new).abs() <= 1e-12 * f.abs().clamp(min=1.0))))
+        inner.logical_and_(trial > 1e-10)  # a frame no step length lowers has arrived (or its energy is not finite)
+        f.copy_(f_new)
+        g.copy_(g_new)
 
 
 class PairMemory:

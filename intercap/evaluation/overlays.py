@@ -35,7 +35,7 @@ OVERLAY_STAGES = ("object", "body", "global")
 _SEG_BODY, _SEG_OBJECT = (255, 0, 0), (0, 255, 0)
 
 
-def _pyrender():
+def import_pyrender():
     """pyrender, imported headless: EGL unless the caller chose a platform (must precede the import)."""
     os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
     import pyrender
@@ -76,7 +76,7 @@ class OverlayRenderer:
     Lights travel with the camera (a head light plus a fill), so every view is shaded alike."""
 
     def __init__(self, cameras, object_mesh=None, znear: float = 0.05, zfar: float = 50.0):
-        self.pr = pr = _pyrender()
+        self.pr = pr = import_pyrender()
         self.cameras = list(cameras)
         self.znear, self.zfar = znear, zfar
         self.maps, pads = [], []

@@ -394,10 +394,10 @@ def heatmap_image(rest_vertices: np.ndarray, faces: np.ndarray, frequency: np.nd
     feet: vertex ids of the feet (they set which end of the body is down; else the sparser end)."""
     import trimesh
 
-    from intercap.evaluation.overlays import _pyrender
+    from intercap.evaluation.overlays import import_pyrender
 
     plt = _plt()
-    pr = _pyrender()
+    pr = import_pyrender()
     v = np.asarray(rest_vertices, np.float64)
     centre = (v.max(0) + v.min(0)) / 2
     axes = np.linalg.svd(v - v.mean(0), full_matrices=False)[2]  # rows: longest (up), arms, front-back
@@ -466,39 +466,25 @@ def _overlay_strip(report_dir: Path, images: list, width: int) -> str:
     return f'<div class="strip">{"".join(items)}</div>'
 
 
-def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True) -> Path:
-    """Write OUT/report/index.html (and the overlay images and video beside it); returns its path.
-
-    session: a Session or its path (default: found as `find_session` says); gt: a session folder
-    with ground_truth/ for the evaluation section; cfg: an intercap Config (default: OUT/config.yaml
-    when readable, else the defaults)."""
+def _report_config(out_dir: Path):
+    """OUT/config.yaml when readable, else the defaults (with only its report settings when it is from another
+    version)."""
     from intercap.config import Config, ConfigError, load_config
 
-    start = time.perf_counter()
-    out_dir = Path(out_dir)
-    if not out_dir.is_dir():
-        raise FileNotFoundError(f"results folder {out_dir} not found")
-    if cfg is None:
+    try:
+        return load_config(out_dir / "config.yaml") if (out_dir / "config.yaml").is_file() else Config()
+    except ConfigError as exc:  # a tree from another version: keep only its report settings
+        cfg = Config()
         try:
-            cfg = load_config(out_dir / "config.yaml") if (out_dir / "config.yaml").is_file() else Config()
-        except ConfigError as exc:  # a tree from another version: keep only its report settings
-            cfg = Config()
-            try:
-                saved = (yaml.safe_load((out_dir / "config.yaml").read_text()) or {}).get("report") or {}
-                cfg = load_config(None, [f"report.{k}={json.dumps(v)}" for k, v in saved.items()])
-            except (ConfigError, OSError, yaml.YAMLError, AttributeError):
-                log.warning("report: %s; using the default settings", exc)
-    rcfg = cfg.report
-    report_dir = out_dir / "report"
-    report_dir.mkdir(parents=True, exist_ok=True)
-    session = find_session(out_dir, session, gt)
-    page = Page()
-    metrics = _json(out_dir / "metrics.json") or {}
-    steps = ["summary", "overlays", "curves", "contact", "penetration", "motion", "physics", "evaluation"]
-    bar = tqdm(total=len(steps), desc="report", unit="section", disable=not progress)
-    bar.set_postfix_str(steps[0])
+            saved = (yaml.safe_load((out_dir / "config.yaml").read_text()) or {}).get("report") or {}
+            cfg = load_config(None, [f"report.{k}={json.dumps(v)}" for k, v in saved.items()])
+        except (ConfigError, OSError, yaml.YAMLError, AttributeError):
+            log.warning("report: %s; using the default settings", exc)
+        return cfg
 
-    # session summary
+
+def _summary_section(page: Page, session, report_dir: Path) -> None:
+    """The session summary: its folder, frames, cameras and which inputs each camera has."""
     if session is None:
         page.not_run("summary", "Session", "session folder unknown (pass --session SESSION or --gt SESSION)")
     else:
@@ -522,7 +508,9 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
         page.add("summary", "Session", "<p>" + " · ".join(facts) + "</p>" + table(rows)
                  + '<p class="sub">per input kind: frames present / frames</p>')
 
-    # stages and timings
+
+def _stages_section(page: Page, out_dir: Path, metrics: dict) -> None:
+    """Each stage's status, timings and scalar figures (metrics.json)."""
     rows = []
     for name in STAGE_ORDER:
         figs = metrics.get(name, {})
@@ -537,7 +525,9 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     total = sum(float(m.get("seconds", 0) or 0) for m in metrics.values() if isinstance(m, dict))
     page.add("stages", "Stages and timings", table(rows) + f"<p>total {total:.1f} s</p>")
 
-    # calibration check
+
+def _calibration_section(page: Page, out_dir: Path) -> None:
+    """The calibration check of the prepare stage (and its check after refining the poses)."""
     calib = _json(out_dir / "prepare" / "calibration_check.json")
     if calib is None:
         page.not_run("calibration", "Calibration check", "no OUT/prepare/calibration_check.json (stage prepare)")
@@ -566,6 +556,33 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
                  f"<p>ICP between neighbouring cameras' clouds, frames {calib.get('frames')}</p>"
                  + table(calib.get("pairs") or [], [c for c in cols if any(c in p for p in calib.get("pairs") or [])])
                  + msg)
+
+
+def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True) -> Path:
+    """Write OUT/report/index.html (and the overlay images and video beside it); returns its path.
+
+    session: a Session or its path (default: found as `find_session` says); gt: a session folder
+    with ground_truth/ for the evaluation section; cfg: an intercap Config (default: OUT/config.yaml
+    when readable, else the defaults)."""
+    start = time.perf_counter()
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise FileNotFoundError(f"results folder {out_dir} not found")
+    if cfg is None:
+        cfg = _report_config(out_dir)
+    rcfg = cfg.report
+    report_dir = out_dir / "report"
+    report_dir.mkdir(parents=True, exist_ok=True)
+    session = find_session(out_dir, session, gt)
+    page = Page()
+    metrics = _json(out_dir / "metrics.json") or {}
+    steps = ["summary", "overlays", "curves", "contact", "penetration", "motion", "physics", "evaluation"]
+    bar = tqdm(total=len(steps), desc="report", unit="section", disable=not progress)
+    bar.set_postfix_str(steps[0])
+
+    _summary_section(page, session, report_dir)
+    _stages_section(page, out_dir, metrics)
+    _calibration_section(page, out_dir)
     _advance(bar, steps)
 
     # overlays
@@ -881,7 +898,7 @@ def fit_against_data_warning(global_metrics: dict, cfg, fps: float) -> str:
     ratio, limit = global_metrics.get("keypoint_energy_ratio"), cfg.global_.max_keypoint_energy_ratio
     if ratio is None or limit <= 0 or ratio <= limit:
         return ""
-    from intercap.stages.global_fit.stage import data_disagreement
+    from intercap.evaluation.warnings import data_disagreement
 
     text = data_disagreement(ratio, fps)
     return f'<p class="warn">{html.escape(text[0].upper() + text[1:], quote=False)}.</p>'
@@ -890,7 +907,7 @@ def fit_against_data_warning(global_metrics: dict, cfg, fps: float) -> str:
 def unsynchronised_warning(global_metrics: dict, cfg) -> str:
     """A warning paragraph naming cameras whose frames lag or lead the others' past
     `global.max_camera_offset_ms` (calib.time_offsets)."""
-    from intercap.stages.global_fit.stage import unsynchronised
+    from intercap.evaluation.warnings import unsynchronised
 
     text = unsynchronised(global_metrics.get("camera_time_offsets_ms") or {}, cfg.global_.max_camera_offset_ms)
     return f'<p class="warn">Cameras {html.escape(text, quote=False)}.</p>' if text else ""

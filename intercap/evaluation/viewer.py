@@ -127,15 +127,11 @@ def _read_ply_cloud(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return points, np.asarray(colors, np.uint8)[:, :3]
 
 
-def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> ViewData:
-    """Load everything the viewer shows from a results folder (and its session, when known)."""
+def _session_meta(out_dir: Path, root: Path | None,
+                  notes: list[str]) -> tuple[float, np.ndarray | None, list, Path | None]:
+    """(fps, frame ids or None, cameras as the fits saw them, object mesh path or None) of the session."""
     import yaml
 
-    out_dir = Path(out_dir)
-    if not out_dir.is_dir():
-        raise ViewerError(f"{out_dir}: no such results folder")
-    root = find_session(out_dir, session)
-    notes: list[str] = []
     fps, frame_ids, cameras, obj_mesh = 30.0, None, [], None
     if root is not None:
         meta = yaml.safe_load((root / "session.yaml").read_text()) or {}
@@ -151,8 +147,11 @@ def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> Vi
             frame_ids = np.arange(int(frames["start"]), int(frames["end"]) + 1)
     else:
         notes.append("session unknown (no OUT/run.json; pass --session): no object mesh, cameras or depth clouds")
+    return fps, frame_ids, cameras, obj_mesh
 
-    data = ViewData(out_dir=out_dir, session_root=root, frame_ids=np.zeros(0, int), fps=fps, cameras=cameras)
+
+def _load_meshes(data: ViewData, out_dir: Path, obj_mesh: Path | None, notes: list[str]) -> None:
+    """The body's vertices and faces, the object's poses and mesh."""
     if (out_dir / "body_vertices.npy").is_file() and (out_dir / "body_faces.npy").is_file():
         data.body_vertices = np.load(out_dir / "body_vertices.npy", mmap_mode="r")
         data.body_faces = np.load(out_dir / "body_faces.npy").astype(np.int64)
@@ -174,14 +173,9 @@ def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> Vi
     else:
         notes.append("no object poses (OUT/object_poses.npz): run the object stage")
 
-    lengths = [len(a) for a in (data.body_vertices, data.object_R) if a is not None]
-    T = lengths[0] if lengths else (len(frame_ids) if frame_ids is not None else 0)
-    if T == 0:
-        raise ViewerError(f"{out_dir}: nothing to show (no body_vertices.npy or object_poses.npz)")
-    if any(n != T for n in lengths):
-        raise ViewerError(f"{out_dir}: body_vertices.npy and object_poses.npz have different frame counts {lengths}")
-    data.frame_ids = frame_ids if frame_ids is not None and len(frame_ids) == T else np.arange(T)
 
+def _load_extras(data: ViewData, out_dir: Path, notes: list[str]) -> None:
+    """Contact labels, the floor, physics forces, 3D keypoints and the fused depth clouds, where present."""
     if (out_dir / "contact.npy").is_file():
         data.contact = np.load(out_dir / "contact.npy").astype(bool)
     if (out_dir / "contact" / "contact.npz").is_file():
@@ -210,6 +204,28 @@ def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> Vi
     clouds = out_dir / "prepare" / "clouds"
     if clouds.is_dir():
         data.cloud_files = {int(p.stem): p for p in clouds.glob("*.ply") if p.stem.isdigit()}
+
+
+def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> ViewData:
+    """Load everything the viewer shows from a results folder (and its session, when known)."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        raise ViewerError(f"{out_dir}: no such results folder")
+    root = find_session(out_dir, session)
+    notes: list[str] = []
+    fps, frame_ids, cameras, obj_mesh = _session_meta(out_dir, root, notes)
+    data = ViewData(out_dir=out_dir, session_root=root, frame_ids=np.zeros(0, int), fps=fps, cameras=cameras)
+    _load_meshes(data, out_dir, obj_mesh, notes)
+
+    lengths = [len(a) for a in (data.body_vertices, data.object_R) if a is not None]
+    T = lengths[0] if lengths else (len(frame_ids) if frame_ids is not None else 0)
+    if T == 0:
+        raise ViewerError(f"{out_dir}: nothing to show (no body_vertices.npy or object_poses.npz)")
+    if any(n != T for n in lengths):
+        raise ViewerError(f"{out_dir}: body_vertices.npy and object_poses.npz have different frame counts {lengths}")
+    data.frame_ids = frame_ids if frame_ids is not None and len(frame_ids) == T else np.arange(T)
+
+    _load_extras(data, out_dir, notes)
     data.notes = notes
     return data
 

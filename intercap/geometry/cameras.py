@@ -255,7 +255,7 @@ def _apply_intrinsics(xy: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     return torch.stack([u, v], dim=-1)
 
 
-def _remove_intrinsics(pixels: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+def remove_intrinsics(pixels: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
     """Pixels (C, N, 2) -> normalised distorted coordinates (C, N, 2)."""
     y = (pixels[..., 1] - K[:, 1, 2, None]) / K[:, 1, 1, None]
     x = (pixels[..., 0] - K[:, 0, 2, None] - K[:, 0, 1, None] * y) / K[:, 0, 0, None]
@@ -281,7 +281,7 @@ def backproject(pixels: torch.Tensor, depth: torch.Tensor, cameras: Cameras) -> 
     Inverse of `project`: depth is the z coordinate in the camera frame (what a
     depth camera stores), not the distance along the ray.
     """
-    xy = undistort(_remove_intrinsics(pixels, cameras.K), cameras.dist)  # (C, N, 2)
+    xy = undistort(remove_intrinsics(pixels, cameras.K), cameras.dist)  # (C, N, 2)
     p_cam = torch.cat([xy * depth[..., None], depth[..., None]], dim=-1)  # (C, N, 3)
     return transform_points(cameras.T_world_from_cam, p_cam)
 
@@ -302,7 +302,7 @@ def pixel_rays(cameras: Cameras, height: int, width: int, stride: int = 1) -> to
     `depth_to_point_grid(..., rays=)` to skip the undistortion per frame."""
     pix = pixel_grid(height, width, stride, device=cameras.K.device, dtype=cameras.K.dtype)  # (N, 2)
     pix = pix.unsqueeze(0).expand(len(cameras), -1, -1)
-    return undistort(_remove_intrinsics(pix, cameras.K), cameras.dist)
+    return undistort(remove_intrinsics(pix, cameras.K), cameras.dist)
 
 
 def depth_to_point_grid(

@@ -62,7 +62,7 @@ def ransac_planes(
     searches), largest first; returns each plane's inlier indices into `points`.
     Seed open3d's RNG beforehand for determinism. Open3D runs single-threaded here: its threads
     share the RNG in whatever order the scheduler gives them, and one session's floor came out
-    tilted differently in 1 run of 5 (stop 44; 0.02 s a search on one thread)."""
+    tilted differently in 1 run of 5."""
     remaining = np.arange(len(points))
     found = []
     for _ in range(max_planes):
@@ -95,6 +95,62 @@ def refine_plane(
         point, normal = new_point, new_normal
         inliers = np.abs((points - point) @ normal) < distance_threshold
     return point, normal, inliers
+
+
+def _plane_foreground(points: np.ndarray, planes: list, person_points) -> tuple[np.ndarray, np.ndarray | None]:
+    """(which points lie on any plane (N,), the foreground shared by every candidate or None: then each
+    candidate's foreground is the points off it)."""
+    on_any_plane = np.zeros(len(points), dtype=bool)
+    for idx in planes:
+        on_any_plane[idx] = True
+    if person_points is not None and len(person_points):
+        shared_foreground = as_points(person_points, "person_points")
+    elif (~on_any_plane).sum() >= max(30, int(0.005 * len(points))):
+        shared_foreground = points[~on_any_plane]
+    else:
+        shared_foreground = None
+    return on_any_plane, shared_foreground
+
+
+def _floor_candidate(points: np.ndarray, idx: np.ndarray, shared_foreground, up, distance_threshold: float,
+                     min_height: float, max_angle_to_up_deg: float):
+    """(rests_on, n_inliers, point, normal) of one RANSAC plane, its normal towards the foreground, or None
+    when the foreground is not above it (or, with up, the plane is too tilted)."""
+    point, normal = least_squares_plane(points[idx])
+    if shared_foreground is not None:
+        foreground = shared_foreground
+    else:
+        off = np.ones(len(points), dtype=bool)
+        off[idx] = False
+        foreground = points[off]
+    if len(foreground) == 0:
+        return None
+    heights = (foreground - point) @ normal
+    if np.median(heights) < 0:
+        normal, heights = -normal, -heights
+    if heights.mean() < min_height:
+        return None
+    if np.mean(heights < -max(0.05, 3 * distance_threshold)) > 0.10:
+        return None
+    if up is not None and np.degrees(np.arccos(np.clip(normal @ up, -1, 1))) > max_angle_to_up_deg:
+        return None
+    rests_on = np.percentile(heights, 2) < 0.25
+    return rests_on, len(idx), point, normal
+
+
+def _largest_plane(points: np.ndarray, planes: list, on_any_plane: np.ndarray, up,
+                   max_angle_to_up_deg: float) -> tuple[np.ndarray, np.ndarray]:
+    """The largest plane, its normal towards the points off the planes; ValueError when it is a wall."""
+    point, normal = least_squares_plane(points[planes[0]])
+    reference = points[~on_any_plane] if (~on_any_plane).any() else points
+    if (reference.mean(axis=0) - point) @ normal < 0:
+        normal = -normal
+    if up is not None:  # a wall seen head-on is no floor: say so rather than return it
+        tilt = np.degrees(np.arccos(np.clip(abs(normal @ up), 0, 1)))
+        if tilt > max_angle_to_up_deg:
+            raise ValueError(f"no floor in view: the largest plane is {tilt:.0f} deg from the cameras' up "
+                             f"(a wall?), none within {max_angle_to_up_deg:g} deg")
+    return point, normal
 
 
 def fit_ground_plane(
@@ -133,15 +189,7 @@ def fit_ground_plane(
             f"in {len(points)} points"
         )
 
-    on_any_plane = np.zeros(len(points), dtype=bool)
-    for idx in planes:
-        on_any_plane[idx] = True
-    if person_points is not None and len(person_points):
-        shared_foreground = as_points(person_points, "person_points")
-    elif (~on_any_plane).sum() >= max(30, int(0.005 * len(points))):
-        shared_foreground = points[~on_any_plane]
-    else:
-        shared_foreground = None
+    on_any_plane, shared_foreground = _plane_foreground(points, planes, person_points)
     up = None
     if up_hint is not None:
         up = np.asarray(up_hint, dtype=np.float64).reshape(3)
@@ -149,26 +197,10 @@ def fit_ground_plane(
 
     candidates = []  # (rests_on, n_inliers, point, normal)
     for idx in planes:
-        point, normal = least_squares_plane(points[idx])
-        if shared_foreground is not None:
-            foreground = shared_foreground
-        else:
-            off = np.ones(len(points), dtype=bool)
-            off[idx] = False
-            foreground = points[off]
-        if len(foreground) == 0:
-            continue
-        heights = (foreground - point) @ normal
-        if np.median(heights) < 0:
-            normal, heights = -normal, -heights
-        if heights.mean() < min_height:
-            continue
-        if np.mean(heights < -max(0.05, 3 * distance_threshold)) > 0.10:
-            continue
-        if up is not None and np.degrees(np.arccos(np.clip(normal @ up, -1, 1))) > max_angle_to_up_deg:
-            continue
-        rests_on = np.percentile(heights, 2) < 0.25
-        candidates.append((rests_on, len(idx), point, normal))
+        candidate = _floor_candidate(points, idx, shared_foreground, up, distance_threshold, min_height,
+                                     max_angle_to_up_deg)
+        if candidate is not None:
+            candidates.append(candidate)
 
     if candidates:
         _, _, point, normal = max(candidates, key=lambda c: (c[0], c[1]))
@@ -177,15 +209,7 @@ def fit_ground_plane(
             "fit_ground_plane: no plane has the foreground above it; using the largest plane "
             "(pass person_points or up_hint, or give `ground` in session.yaml)"
         )
-        point, normal = least_squares_plane(points[planes[0]])
-        reference = points[~on_any_plane] if (~on_any_plane).any() else points
-        if (reference.mean(axis=0) - point) @ normal < 0:
-            normal = -normal
-        if up is not None:  # a wall seen head-on is no floor: say so rather than return it
-            tilt = np.degrees(np.arccos(np.clip(abs(normal @ up), 0, 1)))
-            if tilt > max_angle_to_up_deg:
-                raise ValueError(f"no floor in view: the largest plane is {tilt:.0f} deg from the cameras' up "
-                                 f"(a wall?), none within {max_angle_to_up_deg:g} deg")
+        point, normal = _largest_plane(points, planes, on_any_plane, up, max_angle_to_up_deg)
 
     point, normal, inliers = refine_plane(points, point, normal, distance_threshold)
     residual = (points[inliers] - point) @ normal

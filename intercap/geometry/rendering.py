@@ -605,6 +605,163 @@ def _segment_distance(p: torch.Tensor, A: torch.Tensor, Bv: torch.Tensor) -> tor
 # ----------------------------------------------------------------------------- render
 
 
+def _render_setup(vertices_world: torch.Tensor, mesh, cameras: Cameras, crops, size, sigma: float, margin: float,
+                  znear: float, max_radius: float):
+    """(topology on the vertices' device, vertices (B, V, 3), cameras like them, crops (B, C, 4) constant,
+    (h, w)): `render`'s inputs checked and completed."""
+    topo = mesh if isinstance(mesh, MeshTopology) else MeshTopology.from_faces(mesh)
+    if topo.faces.device != vertices_world.device:
+        topo = topo.to(vertices_world.device)
+    verts = vertices_world if vertices_world.dim() == 3 else vertices_world[None]
+    if verts.dim() != 3 or verts.shape[-1] != 3 or not verts.is_floating_point():
+        raise ValueError(
+            f"rendering: vertices must be a float (B, V, 3) or (V, 3) tensor, got {tuple(vertices_world.shape)}"
+        )
+    B, V, _ = verts.shape
+    if topo.vertices > V:
+        raise ValueError(f"rendering: faces index vertex {topo.vertices - 1} but only {V} vertices given")
+    if sigma <= 0:
+        raise ValueError(f"rendering: sigma must be positive, got {sigma}")
+    cameras = _cameras_like(cameras, verts)
+    C = len(cameras)
+    h, w = _size(size)
+    if crops is None:
+        crops = object_crops(verts, cameras, (h, w), margin=margin, znear=znear, max_radius=max_radius)
+    crops = torch.as_tensor(crops, dtype=verts.dtype, device=verts.device).detach()
+    if crops.dim() == 2:
+        crops = crops[None].expand(B, -1, -1)
+    if tuple(crops.shape) != (B, C, 4):
+        raise ValueError(f"rendering: crops must be (B={B}, C={C}, 4), got {tuple(crops.shape)}")
+    return topo, verts, cameras, crops, (h, w)
+
+
+def _crop_vertices(verts: torch.Tensor, cameras: Cameras, crops: torch.Tensor, h: int, w: int, znear: float,
+                   max_radius: float):
+    """(valid (B, C, V): which vertices each camera can draw, uv (N*V, 2) crop-grid coordinates, z (N*V,)
+    camera depth), N = B x C views, with autograd."""
+    B, V, _ = verts.shape
+    C = len(cameras)
+    N = B * C
+    with torch.no_grad():
+        valid_v = _valid_vertices(_camera_frame(verts.detach(), cameras), cameras.dist, znear, max_radius)  # (B, C, V)
+        ahead = cameras.centers + cameras.T_world_from_cam[:, :3, 2]  # (C, 3) a point 1 m ahead of each camera
+    # vertices a camera cannot draw are swapped for a harmless point before projecting, so that
+    # a vertex on a camera's plane (z = 0) cannot put inf / nan into forward or backward
+    pts = torch.where(valid_v.transpose(0, 1).reshape(C, B * V, 1), verts.reshape(1, B * V, 3), ahead[:, None, :])
+    pix, z = project(pts, cameras)  # (C, BV, 2), (C, BV)
+    pix = pix.reshape(C, B, V, 2).transpose(0, 1).reshape(N, V, 2)
+    box = crops.reshape(N, 4)
+    scale = _crop_scale(box, h, w)  # (N, 2)
+    uv = ((pix - box[:, None, :2]) / scale[:, None, :] - 0.5).reshape(N * V, 2)  # crop-grid coordinates
+    z = z.reshape(C, B, V).transpose(0, 1).reshape(N * V)
+    return valid_v, uv, z
+
+
+@dataclass
+class _DrawnFaces:
+    """Which faces `render` draws in each of its N views, and their outline edges (no autograd)."""
+
+    uv_d: torch.Tensor  # (N*V, 2) detached crop-grid coordinates
+    drawn: torch.Tensor | None  # (N*F,) with fixed shapes: which of all faces are drawn
+    f_view: torch.Tensor  # (M,) each face's view
+    f_idx: torch.Tensor  # (3M,) rows of uv / z of its vertices
+    tri_d: torch.Tensor  # (M, 3, 2) detached projected faces
+    contours: tuple  # `_contours`: view, a, b, inner vertex, used, count
+
+
+def _drawn_faces(topo: MeshTopology, uv: torch.Tensor, valid_v: torch.Tensor, N: int, V: int, cull_backfaces: bool,
+                 capacity, fixed: bool) -> _DrawnFaces:
+    """The faces each view draws (in front, inside the lens' one-to-one region, not degenerate, facing the
+    camera when culling) and their contour edges."""
+    faces = topo.faces
+    F = faces.shape[0]
+    device = uv.device
+    with torch.no_grad():
+        valid_v = valid_v.reshape(N * V)
+        uv_d = uv.detach()
+        all_idx = (torch.arange(N, device=device)[:, None, None] * V + faces).reshape(-1)  # (N*F*3,)
+        tri_all = _take(uv_d, all_idx).reshape(N, -1, 3, 2)
+        area2 = _cross(tri_all[:, :, 1] - tri_all[:, :, 0], tri_all[:, :, 2] - tri_all[:, :, 0])  # (N, F)
+        # facing from the projected winding (y down: counter-clockwise outward faces read negative);
+        # for straight-edged triangles this is exactly what bounds their union in the image
+        front = area2 < 0
+        rendered = _take(valid_v, all_idx).reshape(N, -1, 3).all(-1) & (area2.abs() > 1e-10)
+        if cull_backfaces:
+            rendered &= front
+        contours = _contours(topo, rendered, front, capacity and capacity.contours)
+        drawn = rendered.reshape(-1) if fixed else None
+        # (M,) index into N*F: the drawn faces, or with fixed shapes every face (`drawn` masks them)
+        f_flat = torch.arange(N * F, device=device) if fixed else rendered.reshape(-1).nonzero(as_tuple=True)[0]
+        f_view = torch.div(f_flat, faces.shape[0], rounding_mode="floor")
+        f_idx = _take(all_idx.reshape(-1, 3), f_flat).reshape(-1)  # (3M,) rows of uv / z
+        tri_d = _take(tri_all.reshape(-1, 3, 2), f_flat)
+    return _DrawnFaces(uv_d, drawn, f_view, f_idx, tri_d, contours)
+
+
+def _depth(uv: torch.Tensor, z: torch.Tensor, faces: _DrawnFaces, N: int, h: int, w: int, chunk: int, capacity,
+           fixed: bool):
+    """(depth (N*h*w,) with autograd, 0 where nothing is drawn, covered (N*h*w,) bool, lines and pixels the
+    rasteriser needed): per-face planes with autograd, then the hard z-buffer on their detached values."""
+    dtype, device = uv.dtype, uv.device
+    hw = h * w
+    f_view, f_idx, tri_d, drawn = faces.f_view, faces.f_idx, faces.tri_d, faces.drawn
+    # per-face planes with autograd (M faces), then the hard z-buffer on their detached values
+    tri = _take(uv, f_idx).reshape(-1, 3, 2)  # (M, 3, 2)
+    grad, inv_z = _triangle_planes(tri, _take(z, f_idx).reshape(-1, 3), drawn)
+    with torch.no_grad():
+        keys, n_lines, n_pixels = _rasterize(tri_d, grad.detach(), inv_z.detach(), f_view, N, h, w, chunk, capacity,
+                                             drawn)
+        covered = keys != _NO_KEY
+        # (Q,) pixels with depth: the covered ones, or with fixed shapes all (`covered` masks them)
+        d_pixel = torch.arange(N * hw, device=device) if fixed else covered.nonzero(as_tuple=True)[0]
+        d_face = _take(keys, d_pixel) % max(f_view.numel(), 1)
+    qx, qy = _pixel_xy(d_pixel, h, w, dtype).unbind(-1)
+    ox, oy = _take(tri[:, 0], d_face).unbind(-1)  # (Q,) each: the face's vertex 0
+    iz_x, iz_y, iz_0 = _take(inv_z, d_face).unbind(-1)  # (Q,) each
+    inv_depth = iz_0 + iz_x * (qx - ox) + iz_y * (qy - oy)
+    if fixed:
+        depth = torch.where(covered, 1 / torch.where(covered, inv_depth, 1.0), 0.0)
+    else:
+        depth = torch.zeros(N * hw, dtype=dtype, device=device).index_put((d_pixel,), 1 / inv_depth)
+    return depth, covered, n_lines, n_pixels
+
+
+def _silhouette(uv: torch.Tensor, uv_d: torch.Tensor, contours: tuple, covered: torch.Tensor, V: int, h: int,
+                w: int, sigma: float, band_sigmas: float, piece_px: float | None, chunk: int, capacity, fixed: bool):
+    """(silhouette (N*h*w,) with autograd, pieces the outline needed): the soft silhouette, a sigmoid of the
+    signed distance to the nearest outline piece, reaching 0 / 1 at band_sigmas x sigma."""
+    dtype = uv.dtype
+    band = band_sigmas * sigma
+    c_view, c_a, c_b, c_t, c_used, n_contours = contours
+    A = _take(uv, c_view * V + c_a)  # (K, 2) contour edges, with autograd
+    Bv = _take(uv, c_view * V + c_b)
+    with torch.no_grad():
+        inner_side = _take(uv_d, c_view * V + c_t)  # (K, 2) a vertex on each contour edge's face side
+        piece = piece_px or max(band, 2.0)
+        p_edge, p_t0, p_t1, p_inner, p_used, n_pieces = _outline_pieces(
+            A.detach(), Bv.detach(), inner_side, c_view, covered, h, w, band, piece, c_used,
+            capacity and capacity.pieces)
+        PA = _take(A.detach(), p_edge)
+        PD = _take(Bv.detach(), p_edge) - PA
+        # with fixed shapes, each piece's window is as wide as the longest piece could need
+        window = int(math.ceil(piece + band) + band) + 2 if fixed else None
+        s_pixel, s_piece, s_found = _nearest_outline_pieces(
+            PA + p_t0[:, None] * PD, PA + p_t1[:, None] * PD, p_inner, _take(c_view, p_edge), covered, h, w, band,
+            chunk, p_used, window)
+        s_edge, s_t0, s_t1 = _take(p_edge, s_piece), _take(p_t0, s_piece), _take(p_t1, s_piece)
+    EA, EB = _take(A, s_edge), _take(Bv, s_edge)
+    ED = EB - EA
+    dist = _segment_distance(_pixel_xy(s_pixel, h, w, dtype), EA + s_t0[:, None] * ED, EA + s_t1[:, None] * ED)
+    signed = torch.where(_take(covered, s_pixel), dist, -dist).clamp(-band, band)
+    lo = 1 / (1 + math.exp(band_sigmas))  # sigmoid(-band / sigma)
+    soft = (torch.sigmoid(signed / sigma) - lo) / (1 - 2 * lo)
+    if fixed:
+        silhouette = torch.where(s_found, soft, covered.to(dtype))
+    else:
+        silhouette = covered.to(dtype).index_put((s_pixel,), soft)
+    return silhouette, n_pieces
+
+
 def render(
     vertices_world: torch.Tensor,
     mesh,
@@ -640,118 +797,20 @@ def render(
     (default: the band). `capacity`: fixed shapes (a `Capacity`): the same result while
     `out.needed` fits, nothing read back from the device, and the same shapes every call.
     """
-    topo = mesh if isinstance(mesh, MeshTopology) else MeshTopology.from_faces(mesh)
-    if topo.faces.device != vertices_world.device:
-        topo = topo.to(vertices_world.device)
-    verts = vertices_world if vertices_world.dim() == 3 else vertices_world[None]
-    if verts.dim() != 3 or verts.shape[-1] != 3 or not verts.is_floating_point():
-        raise ValueError(
-            f"rendering: vertices must be a float (B, V, 3) or (V, 3) tensor, got {tuple(vertices_world.shape)}"
-        )
+    topo, verts, cameras, crops, (h, w) = _render_setup(vertices_world, mesh, cameras, crops, size, sigma, margin,
+                                                         znear, max_radius)
     B, V, _ = verts.shape
-    if topo.vertices > V:
-        raise ValueError(f"rendering: faces index vertex {topo.vertices - 1} but only {V} vertices given")
-    if sigma <= 0:
-        raise ValueError(f"rendering: sigma must be positive, got {sigma}")
-    cameras = _cameras_like(cameras, verts)
     C = len(cameras)
-    h, w = _size(size)
-    if crops is None:
-        crops = object_crops(verts, cameras, (h, w), margin=margin, znear=znear, max_radius=max_radius)
-    crops = torch.as_tensor(crops, dtype=verts.dtype, device=verts.device).detach()
-    if crops.dim() == 2:
-        crops = crops[None].expand(B, -1, -1)
-    if tuple(crops.shape) != (B, C, 4):
-        raise ValueError(f"rendering: crops must be (B={B}, C={C}, 4), got {tuple(crops.shape)}")
-    N, hw = B * C, h * w
-    dtype, device = verts.dtype, verts.device
-
-    with torch.no_grad():
-        valid_v = _valid_vertices(_camera_frame(verts.detach(), cameras), cameras.dist, znear, max_radius)  # (B, C, V)
-        ahead = cameras.centers + cameras.T_world_from_cam[:, :3, 2]  # (C, 3) a point 1 m ahead of each camera
-    # vertices a camera cannot draw are swapped for a harmless point before projecting, so that
-    # a vertex on a camera's plane (z = 0) cannot put inf / nan into forward or backward
-    pts = torch.where(valid_v.transpose(0, 1).reshape(C, B * V, 1), verts.reshape(1, B * V, 3), ahead[:, None, :])
-    pix, z = project(pts, cameras)  # (C, BV, 2), (C, BV)
-    pix = pix.reshape(C, B, V, 2).transpose(0, 1).reshape(N, V, 2)
-    box = crops.reshape(N, 4)
-    scale = _crop_scale(box, h, w)  # (N, 2)
-    uv = ((pix - box[:, None, :2]) / scale[:, None, :] - 0.5).reshape(N * V, 2)  # crop-grid coordinates
-    z = z.reshape(C, B, V).transpose(0, 1).reshape(N * V)
-
-    faces = topo.faces
-    F = faces.shape[0]
-    fixed = capacity is not None and F > 0
+    N = B * C
+    valid_v, uv, z = _crop_vertices(verts, cameras, crops, h, w, znear, max_radius)
+    fixed = capacity is not None and topo.faces.shape[0] > 0
     capacity = capacity if fixed else None
-    band = band_sigmas * sigma
-    chunk = max_pairs or MAX_PAIRS.get(device.type, MAX_PAIRS["cuda"])
-    with torch.no_grad():
-        valid_v = valid_v.reshape(N * V)
-        uv_d = uv.detach()
-        all_idx = (torch.arange(N, device=device)[:, None, None] * V + faces).reshape(-1)  # (N*F*3,)
-        tri_all = _take(uv_d, all_idx).reshape(N, -1, 3, 2)
-        area2 = _cross(tri_all[:, :, 1] - tri_all[:, :, 0], tri_all[:, :, 2] - tri_all[:, :, 0])  # (N, F)
-        # facing from the projected winding (y down: counter-clockwise outward faces read negative);
-        # for straight-edged triangles this is exactly what bounds their union in the image
-        front = area2 < 0
-        rendered = _take(valid_v, all_idx).reshape(N, -1, 3).all(-1) & (area2.abs() > 1e-10)
-        if cull_backfaces:
-            rendered &= front
-        c_view, c_a, c_b, c_t, c_used, n_contours = _contours(topo, rendered, front, capacity and capacity.contours)
-        drawn = rendered.reshape(-1) if fixed else None
-        # (M,) index into N*F: the drawn faces, or with fixed shapes every face (`drawn` masks them)
-        f_flat = torch.arange(N * F, device=device) if fixed else rendered.reshape(-1).nonzero(as_tuple=True)[0]
-        f_view = torch.div(f_flat, faces.shape[0], rounding_mode="floor")
-        f_idx = _take(all_idx.reshape(-1, 3), f_flat).reshape(-1)  # (3M,) rows of uv / z
-        tri_d = _take(tri_all.reshape(-1, 3, 2), f_flat)
-
-    # per-face planes with autograd (M faces), then the hard z-buffer on their detached values
-    tri = _take(uv, f_idx).reshape(-1, 3, 2)  # (M, 3, 2)
-    grad, inv_z = _triangle_planes(tri, _take(z, f_idx).reshape(-1, 3), drawn)
-    with torch.no_grad():
-        keys, n_lines, n_pixels = _rasterize(tri_d, grad.detach(), inv_z.detach(), f_view, N, h, w, chunk, capacity,
-                                             drawn)
-        covered = keys != _NO_KEY
-        # (Q,) pixels with depth: the covered ones, or with fixed shapes all (`covered` masks them)
-        d_pixel = torch.arange(N * hw, device=device) if fixed else covered.nonzero(as_tuple=True)[0]
-        d_face = _take(keys, d_pixel) % max(f_view.numel(), 1)
-    qx, qy = _pixel_xy(d_pixel, h, w, dtype).unbind(-1)
-    ox, oy = _take(tri[:, 0], d_face).unbind(-1)  # (Q,) each: the face's vertex 0
-    iz_x, iz_y, iz_0 = _take(inv_z, d_face).unbind(-1)  # (Q,) each
-    inv_depth = iz_0 + iz_x * (qx - ox) + iz_y * (qy - oy)
-    if fixed:
-        depth = torch.where(covered, 1 / torch.where(covered, inv_depth, 1.0), 0.0)
-    else:
-        depth = torch.zeros(N * hw, dtype=dtype, device=device).index_put((d_pixel,), 1 / inv_depth)
-
-    # soft silhouette: signed distance to the nearest outline piece
-    A = _take(uv, c_view * V + c_a)  # (K, 2) contour edges, with autograd
-    Bv = _take(uv, c_view * V + c_b)
-    with torch.no_grad():
-        inner_side = _take(uv_d, c_view * V + c_t)  # (K, 2) a vertex on each contour edge's face side
-        piece = piece_px or max(band, 2.0)
-        p_edge, p_t0, p_t1, p_inner, p_used, n_pieces = _outline_pieces(
-            A.detach(), Bv.detach(), inner_side, c_view, covered, h, w, band, piece, c_used,
-            capacity and capacity.pieces)
-        PA = _take(A.detach(), p_edge)
-        PD = _take(Bv.detach(), p_edge) - PA
-        # with fixed shapes, each piece's window is as wide as the longest piece could need
-        window = int(math.ceil(piece + band) + band) + 2 if fixed else None
-        s_pixel, s_piece, s_found = _nearest_outline_pieces(
-            PA + p_t0[:, None] * PD, PA + p_t1[:, None] * PD, p_inner, _take(c_view, p_edge), covered, h, w, band, chunk,
-            p_used, window)
-        s_edge, s_t0, s_t1 = _take(p_edge, s_piece), _take(p_t0, s_piece), _take(p_t1, s_piece)
-    EA, EB = _take(A, s_edge), _take(Bv, s_edge)
-    ED = EB - EA
-    dist = _segment_distance(_pixel_xy(s_pixel, h, w, dtype), EA + s_t0[:, None] * ED, EA + s_t1[:, None] * ED)
-    signed = torch.where(_take(covered, s_pixel), dist, -dist).clamp(-band, band)
-    lo = 1 / (1 + math.exp(band_sigmas))  # sigmoid(-band / sigma)
-    soft = (torch.sigmoid(signed / sigma) - lo) / (1 - 2 * lo)
-    if fixed:
-        silhouette = torch.where(s_found, soft, covered.to(dtype))
-    else:
-        silhouette = covered.to(dtype).index_put((s_pixel,), soft)
-
+    chunk = max_pairs or MAX_PAIRS.get(verts.device.type, MAX_PAIRS["cuda"])
+    faces = _drawn_faces(topo, uv, valid_v, N, V, cull_backfaces, capacity, fixed)
+    depth, covered, n_lines, n_pixels = _depth(uv, z, faces, N, h, w, chunk, capacity, fixed)
+    silhouette, n_pieces = _silhouette(uv, faces.uv_d, faces.contours, covered, V, h, w, sigma, band_sigmas, piece_px,
+                                       chunk, capacity, fixed)
+    n_contours = faces.contours[5]
     return RenderOutput(
         silhouette=silhouette.reshape(B, C, h, w),
         depth=depth.reshape(B, C, h, w),

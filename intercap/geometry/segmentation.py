@@ -4,7 +4,7 @@ A static background is learnt per camera from depth over time (the far,
 stable value of each pixel; the person's pixels left out; regions beyond the
 sensor's range known as far), foreground is what lies clearly in front of it,
 and object candidates are the foreground outside the person. Which pixels are
-the object is decided by the tracker (`intercap.object`): those whose 3D
+the object is decided by the tracker (`intercap.stages.object`): those whose 3D
 points lie near the object's predicted pose.
 """
 from __future__ import annotations

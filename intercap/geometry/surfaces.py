@@ -1,12 +1,9 @@
-"""Exact point-to-triangle distances and surface sampling (numpy): the comparisons
-of surfaces that evaluation and the stages share, whatever the meshes' topologies."""
+"""Exact point-to-triangle distances (open3d finds the closest triangle, numpy measures it in
+float64) and surface sampling: the comparisons of surfaces that evaluation and the stages share,
+whatever the meshes' topologies."""
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
-
-QUERY_CHUNK = 20000  # points per closest-triangle batch (bounds memory)
-PARALLEL_QUERY = 8192  # KD-tree queries of fewer points run on one thread (starting threads costs more)
 
 
 def closest_points_on_triangles(p, a, b, c):
@@ -55,86 +52,46 @@ def closest_points_on_triangles(p, a, b, c):
 class TriangleSurface:
     """A triangle mesh prepared for exact closest-point and signed-distance queries.
 
-    Triangles are grouped by size (centroid-to-corner radius, in doublings of
-    the median), one centroid KD-tree per group. A point's candidates are the
-    k triangles with the nearest centroids in each group; the answer is exact
-    because a triangle outside a group's k nearest is at least (k-th centroid
-    distance - the group's largest radius) away, and where that bound does not
-    rule a group out, every triangle of the group within the bounding ball is
-    tested too. Grouping keeps the bound tight on meshes that mix small and
-    long, thin triangles (anny's body has radii from 0.4 to 35 mm). Candidates
-    are screened in float32 (speed); the chosen triangle's distance is float64.
+    open3d's raycasting scene (Embree's bounding-volume hierarchy, float32) finds each point's
+    closest triangle; the point on that triangle, the feature it lies on and the distance are
+    computed again in float64 (`closest_points_on_triangles`). Where two triangles are equally
+    near within float32 the scene may pick either: the distance is the same to float32's
+    resolution, the closest point may be the other one (tools/bench_surfaces.py compares them with
+    an exact float64 search). The scene is built on first use and not pickled (it cannot be).
     """
 
-    def __init__(self, vertices, faces, k: int = 6):
+    def __init__(self, vertices, faces):
         self.vertices = np.asarray(vertices, np.float64)  # (V, 3)
         self.faces = np.asarray(faces, np.int64)  # (F, 3)
         if self.faces.ndim != 2 or self.faces.shape[1] != 3 or len(self.faces) == 0:
             raise ValueError(f"faces must be a non-empty (F, 3) array, got {self.faces.shape}")
         self.tri = self.vertices[self.faces]  # (F, 3, 3)
-        centroids = self.tri.mean(1)  # (F, 3)
-        radius = np.linalg.norm(self.tri - centroids[:, None], axis=2).max(1)  # (F,)
-        ref = max(float(np.median(radius)), 1e-12)
-        level = np.ceil(np.log2(np.maximum(radius / ref, 1.0))).astype(np.int64)
-        self.groups = []  # (face ids, KD-tree of their centroids, largest radius, k)
-        for lv in np.unique(level):
-            ids = np.flatnonzero(level == lv)
-            tree = cKDTree(centroids[ids], balanced_tree=False, compact_nodes=False)
-            self.groups.append((ids, tree, float(radius[ids].max()), int(min(k, len(ids)))))
-        self.tri32 = self.tri.astype(np.float32)  # candidate screening only; answers are float64
+        self._scene = None
         self._normals = None
+
+    def __getstate__(self):
+        return {**self.__dict__, "_scene": None}
 
     def closest(self, points):
         """Distance (N,), closest point (N, 3), face (N,) and region (N,) for points (N, 3)."""
         points = np.asarray(points, np.float64).reshape(-1, 3)
-        n = len(points)
-        dist, q = np.empty(n), np.empty((n, 3))
-        face, region = np.empty(n, np.int64), np.empty(n, np.int8)
-        for s in range(0, n, QUERY_CHUNK):
-            sl = slice(s, min(s + QUERY_CHUNK, n))
-            face[sl] = self._closest_faces(points[sl])
-            t = self.tri[face[sl]]
-            q[sl], region[sl] = closest_points_on_triangles(points[sl], t[:, 0], t[:, 1], t[:, 2])
-            dist[sl] = np.linalg.norm(q[sl] - points[sl], axis=1)
-        return dist, q, face, region
+        face = self.closest_faces(points)
+        t = self.tri[face]
+        q, region = closest_points_on_triangles(points, t[:, 0], t[:, 1], t[:, 2])
+        return np.linalg.norm(q - points, axis=1), q, face, region
 
-    def _closest_faces(self, p):
-        """Index (N,) of the triangle closest to each point (N, 3)."""
-        n = len(p)
-        workers = -1 if n >= PARALLEL_QUERY else 1
-        cand, kth = [], []
-        for ids, tree, _, k in self.groups:
-            dk, j = tree.query(p, k, workers=workers)
-            cand.append(ids[j.reshape(n, -1)])
-            kth.append(dk.reshape(n, -1)[:, -1] if k < len(ids) else np.full(n, np.inf))
-        cand = np.concatenate(cand, axis=1)  # (N, C)
-        t = self.tri32[cand]  # (N, C, 3, 3)
-        p32 = p.astype(np.float32)[:, None]
-        q, _ = closest_points_on_triangles(p32, t[..., 0, :], t[..., 1, :], t[..., 2, :])
-        d = np.linalg.norm(q - p32, axis=-1)  # (N, C)
-        j = d.argmin(1)
-        best_f = cand[np.arange(n), j]
-        t = self.tri[best_f]  # the winner's distance in float64, for the bounds below
-        best_d = np.linalg.norm(closest_points_on_triangles(p, t[:, 0], t[:, 1], t[:, 2])[0] - p, axis=1)
-        for (ids, tree, r_max, _), dk in zip(self.groups, kth):
-            unsure = np.flatnonzero(dk - r_max < best_d)
-            if len(unsure) == 0:
-                continue
-            balls = tree.query_ball_point(p[unsure], best_d[unsure] + r_max, workers=workers)
-            counts = np.fromiter((len(b) for b in balls), np.int64, len(balls))
-            if counts.sum() == 0:
-                continue
-            owner = np.repeat(unsure, counts)  # (M,)
-            faces = ids[np.concatenate([np.asarray(b, np.int64) for b in balls])]
-            t = self.tri[faces]
-            qq, _ = closest_points_on_triangles(p[owner], t[:, 0], t[:, 1], t[:, 2])
-            dd = np.linalg.norm(qq - p[owner], axis=1)
-            order = np.lexsort((dd, owner))
-            first = order[np.r_[True, owner[order][1:] != owner[order][:-1]]]
-            better = dd[first] < best_d[owner[first]]
-            best_d[owner[first[better]]] = dd[first[better]]
-            best_f[owner[first[better]]] = faces[first[better]]
-        return best_f
+    def closest_faces(self, points):
+        """Index (N,) of the triangle closest to each point (N, 3), chosen in float32."""
+        import open3d as o3d
+
+        if not np.isfinite(points).all():
+            raise ValueError("closest points of non-finite points (nan or inf) asked for")
+        if self._scene is None:
+            self._scene = o3d.t.geometry.RaycastingScene()
+            self._scene.add_triangles(o3d.core.Tensor(self.vertices.astype(np.float32)),
+                                      o3d.core.Tensor(self.faces.astype(np.uint32)))
+        query = o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
+        return self._scene.compute_closest_points(query)["primitive_ids"].numpy().astype(np.int64)
 
     def _pseudonormals(self):
         """Face, angle-weighted vertex and edge normals (Baerentzen & Aanaes), for the inside test."""

@@ -141,13 +141,75 @@ def find_template(objects_dir: Path | None, name: str) -> Path:
     return full
 
 
+def behave_cameras(calib_dir, info: dict, seq: Path, date: str, kinects: list[int]) -> tuple[list, list]:
+    """(calibration.json camera entries, colour image sizes) of the sequence's Kinects."""
+    cams, sizes = [], []
+    for k in kinects:
+        color, T = read_behave_camera(calib_dir, info, seq, date, k)
+        size = (int(color["width"]), int(color["height"]))
+        K = [[color["fx"], 0.0, color["cx"]], [0.0, color["fy"], color["cy"]], [0.0, 0.0, 1.0]]
+        cams.append(camera_entry(f"k{k}", *size, K, behave_dist(color), T))
+        sizes.append(size)
+    return cams, sizes
+
+
+def _frame_file(folder: Path, k: int, stem: str, exts) -> Path | None:
+    return _first_file(*(folder / f"k{k}.{stem}.{e}" for e in exts))
+
+
+def copy_behave_frame(folder: Path, kinects: list[int], sizes: list, tmp: Path, i: int) -> None:
+    """Each camera's colour, depth and masks of one BEHAVE frame folder as session frame i."""
+    for c, k in enumerate(kinects):
+        color = _frame_file(folder, k, "color", ("jpg", "jpeg", "png"))
+        depth = _frame_file(folder, k, "depth", ("png",))
+        if color is None or depth is None:
+            missing = folder / f"k{k}.{'color.jpg' if color is None else 'depth.png'}"
+            raise DatasetImportError(f"{missing}: missing (camera k{k} of this BEHAVE frame)")
+        if i == 0 and image_size(color) != sizes[c]:
+            raise DatasetImportError(f"{color}: {image_size(color)[0]}x{image_size(color)[1]} but its "
+                                     f"calibration says {sizes[c][0]}x{sizes[c][1]}")
+        copy_color(color, tmp / f"k{k}" / "color", i)
+        write_depth(depth, tmp / f"k{k}" / "depth", i, sizes[c])
+        person = _frame_file(folder, k, "person_mask", ("png", "jpg"))
+        if person is not None:
+            write_mask(person, tmp / f"k{k}" / "masks" / "person", i, sizes[c])
+        obj = (_frame_file(folder, k, "obj_rend_mask", ("png", "jpg"))
+               or _frame_file(folder, k, "obj_mask", ("png", "jpg")))
+        if obj is not None:
+            write_mask(obj, tmp / f"k{k}" / "masks" / "object", i, sizes[c])
+
+
+def write_behave_object(tmp: Path, objects_dir, name: str, fits: np.ndarray, doc: dict) -> np.ndarray:
+    """The centred template as object.ply (entered in `doc`) and BEHAVE's object fits (n_slots, 2, 3) as
+    ground truth (all frames fitted) or behave_object_fits.npz; returns which frames have a fit."""
+    from intercap.session.format import load_mesh_file
+
+    have_fit = np.isfinite(fits).all((1, 2))
+    mesh_path = find_template(objects_dir, name)
+    mesh = load_mesh_file(mesh_path)
+    centred = mesh.copy()
+    centred.vertices = np.asarray(mesh.vertices, np.float64) - np.asarray(mesh.vertices, np.float64).mean(0)
+    centred.export(tmp / "object.ply")
+    doc["object"] = {"mesh": "object.ply", "name": name}
+    if have_fit.any():
+        from scipy.spatial.transform import Rotation
+
+        R = np.full((len(fits), 3, 3), np.nan)
+        R[have_fit] = Rotation.from_rotvec(fits[have_fit, 0]).as_matrix()
+        t = fits[:, 1]
+        if have_fit.all():
+            (tmp / "ground_truth").mkdir()
+            np.savez(tmp / "ground_truth" / "object_poses.npz", R=R, t=t)
+        else:
+            np.savez(tmp / "behave_object_fits.npz", R=R, t=t, valid=have_fit)
+    return have_fit
+
+
 def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwrite: bool = False,
                   start: int | None = None, end: int | None = None) -> dict:
     """Import one BEHAVE sequence into `out_session` (written to a temporary folder, renamed at the end).
 
     Frames [start, end] (inclusive, in time order) when given. Returns a summary dict."""
-    from intercap.session.format import load_mesh_file
-
     t0 = time.perf_counter()
     seq = Path(seq_dir)
     if not seq.is_dir():
@@ -167,16 +229,7 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
     if not kinects:
         raise DatasetImportError(f"{first}: no k<k>.color.jpg images")
 
-    cams, sizes = [], []
-    for k in kinects:
-        color, T = read_behave_camera(calib_dir, info, seq, date, k)
-        size = (int(color["width"]), int(color["height"]))
-        K = [[color["fx"], 0.0, color["cx"]], [0.0, color["fy"], color["cy"]], [0.0, 0.0, 1.0]]
-        cams.append(camera_entry(f"k{k}", *size, K, behave_dist(color), T))
-        sizes.append(size)
-
-    def frame_file(folder: Path, k: int, stem: str, exts) -> Path | None:
-        return _first_file(*(folder / f"k{k}.{stem}.{e}" for e in exts))
+    cams, sizes = behave_cameras(calib_dir, info, seq, date, kinects)
 
     times = np.array([f[1] for f in frames])
     dt = np.diff(times)
@@ -190,50 +243,17 @@ def import_behave(seq_dir, out_session, calib_dir=None, objects_dir=None, overwr
         fits = np.full((n_slots, 2, 3), np.nan)
         for i, (folder_name, _) in zip(slots.tolist(), frames):
             folder = seq / folder_name
-            for c, k in enumerate(kinects):
-                color = frame_file(folder, k, "color", ("jpg", "jpeg", "png"))
-                depth = frame_file(folder, k, "depth", ("png",))
-                if color is None or depth is None:
-                    missing = folder / f"k{k}.{'color.jpg' if color is None else 'depth.png'}"
-                    raise DatasetImportError(f"{missing}: missing (camera k{k} of this BEHAVE frame)")
-                if i == 0 and image_size(color) != sizes[c]:
-                    raise DatasetImportError(f"{color}: {image_size(color)[0]}x{image_size(color)[1]} but its "
-                                             f"calibration says {sizes[c][0]}x{sizes[c][1]}")
-                copy_color(color, tmp / f"k{k}" / "color", i)
-                write_depth(depth, tmp / f"k{k}" / "depth", i, sizes[c])
-                person = frame_file(folder, k, "person_mask", ("png", "jpg"))
-                if person is not None:
-                    write_mask(person, tmp / f"k{k}" / "masks" / "person", i, sizes[c])
-                obj = frame_file(folder, k, "obj_rend_mask", ("png", "jpg")) or frame_file(folder, k, "obj_mask", ("png", "jpg"))
-                if obj is not None:
-                    write_mask(obj, tmp / f"k{k}" / "masks" / "object", i, sizes[c])
+            copy_behave_frame(folder, kinects, sizes, tmp, i)
             if name:
                 pkl = folder / name / "fit01" / f"{name}_fit.pkl"
                 if pkl.is_file():
                     with open(pkl, "rb") as f:
                         fit = pickle.load(f)
-                    fits[i] = np.asarray(fit["angle"], np.float64).reshape(3), np.asarray(fit["trans"], np.float64).reshape(3)
+                    fits[i] = (np.asarray(fit["angle"], np.float64).reshape(3),
+                               np.asarray(fit["trans"], np.float64).reshape(3))
         write_calibration(tmp, cams, world="metres; BEHAVE's world: camera k1's colour camera frame (OpenCV axes)")
         doc: dict = {"fps": fps, "frames": {"start": 0, "end": n_slots - 1}, "body": {"model": "anny"}}
-        have_fit = np.isfinite(fits).all((1, 2))
-        if name:
-            mesh_path = find_template(objects_dir, name)
-            mesh = load_mesh_file(mesh_path)
-            centred = mesh.copy()
-            centred.vertices = np.asarray(mesh.vertices, np.float64) - np.asarray(mesh.vertices, np.float64).mean(0)
-            centred.export(tmp / "object.ply")
-            doc["object"] = {"mesh": "object.ply", "name": name}
-            if have_fit.any():
-                from scipy.spatial.transform import Rotation
-
-                R = np.full((n_slots, 3, 3), np.nan)
-                R[have_fit] = Rotation.from_rotvec(fits[have_fit, 0]).as_matrix()
-                t = fits[:, 1]
-                if have_fit.all():
-                    (tmp / "ground_truth").mkdir()
-                    np.savez(tmp / "ground_truth" / "object_poses.npz", R=R, t=t)
-                else:
-                    np.savez(tmp / "behave_object_fits.npz", R=R, t=t, valid=have_fit)
+        have_fit = write_behave_object(tmp, objects_dir, name, fits, doc) if name else np.isfinite(fits).all((1, 2))
         (tmp / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
         write_json(tmp / "behave_frames.json", {"sequence": str(seq), "frames": [
             {"frame": int(i), "folder": f, "time_s": s} for i, (f, s) in zip(slots, frames)],

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 
-def _atomic_target(path: Path, suffix: str):
+def atomic_target(path: Path, suffix: str):
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
@@ -20,7 +20,7 @@ def _atomic_target(path: Path, suffix: str):
 
 def write_json(path: str | Path, data) -> None:
     path = Path(path)
-    tmp = _atomic_target(path, ".json")
+    tmp = atomic_target(path, ".json")
     tmp.write_text(json.dumps(data, indent=2, default=_to_builtin) + "\n")
     os.replace(tmp, path)
 
@@ -31,7 +31,7 @@ def read_json(path: str | Path):
 
 def save_npz(path: str | Path, **arrays) -> None:
     path = Path(path)
-    tmp = _atomic_target(path, ".npz")
+    tmp = atomic_target(path, ".npz")
     with open(tmp, "wb") as f:
         np.savez(f, **arrays)
     os.replace(tmp, path)
@@ -39,7 +39,7 @@ def save_npz(path: str | Path, **arrays) -> None:
 
 def save_npy(path: str | Path, array: np.ndarray) -> None:
     path = Path(path)
-    tmp = _atomic_target(path, ".npy")
+    tmp = atomic_target(path, ".npy")
     with open(tmp, "wb") as f:
         np.save(f, array)
     os.replace(tmp, path)
@@ -50,7 +50,7 @@ def publish(path: str | Path, public: str | Path) -> None:
     where the file system allows, else a copy, replacing what was there atomically. A later
     stage that publishes its own file there leaves this one untouched in the stage folder."""
     path, public = Path(path), Path(public)
-    tmp = _atomic_target(public, path.suffix)
+    tmp = atomic_target(public, path.suffix)
     tmp.unlink()
     try:
         os.link(path, tmp)
@@ -87,7 +87,7 @@ def write_point_cloud_ply(path: str | Path, points: np.ndarray, colors: np.ndarr
         records["red"], records["green"], records["blue"] = colors.T
     props = "".join(f"property {'float' if t == 'f4' else 'uchar'} {n}\n" for n, t in fields)
     header = f"ply\nformat binary_little_endian 1.0\nelement vertex {len(points)}\n{props}end_header\n"
-    tmp = _atomic_target(path, ".ply")
+    tmp = atomic_target(path, ".ply")
     with open(tmp, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(records.tobytes())

@@ -105,6 +105,50 @@ def _frames(folder: Path) -> dict[int, Path]:
     return {int(m.group(1)): p for p in folder.iterdir() if (m := FRAME.match(p.name))}
 
 
+def intercap_cameras(seq: Path, calib_dir: Path, which: str, color_files: list, first: int) -> tuple[list, list]:
+    """(calibration.json camera entries, colour image sizes) of the segment's cameras."""
+    cams, sizes = [], []
+    for k in range(1, NUM_CAMERAS + 1):
+        K, dist, T = read_intercap_camera(calibration_file(calib_dir, which, k))
+        sample = color_files[k - 1].get(first) or next(iter(color_files[k - 1].values()), None)
+        if sample is None:
+            raise DatasetImportError(f"{seq / f'Frames_Cam{k}' / 'color'}: no frames")
+        size = image_size(sample)
+        cams.append(camera_entry(f"cam{k}", *size, K, dist, T))
+        sizes.append(size)
+    return cams, sizes
+
+
+def write_intercap_object(tmp: Path, objects_dir, motion: int, doc: dict) -> None:
+    """The motion's object template, centred, as object.ply (entered in `doc`)."""
+    from intercap.session.format import load_mesh_file
+
+    mesh_path = Path(objects_dir) / f"{motion:02d}.ply"
+    if not mesh_path.is_file():
+        raise DatasetImportError(f"{mesh_path}: missing (the object template of motion {motion:02d})")
+    mesh = load_mesh_file(mesh_path)
+    mesh.vertices = np.asarray(mesh.vertices, np.float64) - np.asarray(mesh.vertices, np.float64).mean(0)
+    mesh.export(tmp / "object.ply")
+    doc["object"] = {"mesh": "object.ply", "name": f"intercap_{motion:02d}"}
+
+
+def write_intercap_fits(tmp: Path, fits, first: int, last: int) -> None:
+    """InterCap's object fits (a pickle of per-frame ob_pose, ob_trans) of frames first..last as ground truth."""
+    fits = Path(fits)
+    frames = range(first, last + 1)
+    try:
+        with open(fits, "rb") as f:
+            per_frame = pickle.load(f)
+        pose = np.array([np.asarray(per_frame[i]["ob_pose"], np.float64).reshape(3) for i in frames])
+        trans = np.array([np.asarray(per_frame[i]["ob_trans"], np.float64).reshape(3) for i in frames])
+    except (OSError, pickle.UnpicklingError, KeyError, IndexError, TypeError) as exc:
+        raise DatasetImportError(f"{fits}: needs one dict with ob_pose, ob_trans per frame {first}..{last}: "
+                                 f"{exc}") from exc
+    (tmp / "ground_truth").mkdir()
+    np.savez(tmp / "ground_truth" / "object_poses.npz",
+             R=np.stack([rotation_from_rodrigues(p) for p in pose]), t=trans)
+
+
 def import_intercap(seq_dir, out_session, calib_dir, objects_dir=None, fits=None, which: str | None = None,
                     subject: int | None = None, motion: int | None = None, fps: float = 30.0,
                     overwrite: bool = False, start: int | None = None, end: int | None = None) -> dict:
@@ -112,8 +156,6 @@ def import_intercap(seq_dir, out_session, calib_dir, objects_dir=None, fits=None
 
     Subject and motion come from SEQ_DIR's path (<subject>/<motion>/Seg_<n>) unless given; `which`
     overrides the calibration set. Frames [start, end] (InterCap frame numbers, inclusive)."""
-    from intercap.session.format import load_mesh_file
-
     t0 = time.perf_counter()
     seq = Path(seq_dir)
     if not seq.is_dir():
@@ -135,15 +177,7 @@ def import_intercap(seq_dir, out_session, calib_dir, objects_dir=None, fits=None
         raise DatasetImportError(f"{seq}: no colour frames in Frames_Cam*/color (range {start}..{end})")
     first, last = ids[0], ids[-1]
 
-    cams, sizes = [], []
-    for k in range(1, NUM_CAMERAS + 1):
-        K, dist, T = read_intercap_camera(calibration_file(calib_dir, which, k))
-        sample = color_files[k - 1].get(first) or next(iter(color_files[k - 1].values()), None)
-        if sample is None:
-            raise DatasetImportError(f"{seq / f'Frames_Cam{k}' / 'color'}: no frames")
-        size = image_size(sample)
-        cams.append(camera_entry(f"cam{k}", *size, K, dist, T))
-        sizes.append(size)
+    cams, sizes = intercap_cameras(seq, calib_dir, which, color_files, first)
     dropped = {}
     with staging(out_session, overwrite) as tmp:
         for k in range(1, NUM_CAMERAS + 1):
@@ -162,25 +196,9 @@ def import_intercap(seq_dir, out_session, calib_dir, objects_dir=None, fits=None
         write_calibration(tmp, cams, world="metres; InterCap's world: camera 1's colour camera frame (OpenCV axes)")
         doc: dict = {"fps": float(fps), "frames": {"start": first, "end": last}, "body": {"model": "anny"}}
         if objects_dir is not None:
-            mesh_path = Path(objects_dir) / f"{motion:02d}.ply"
-            if not mesh_path.is_file():
-                raise DatasetImportError(f"{mesh_path}: missing (the object template of motion {motion:02d})")
-            mesh = load_mesh_file(mesh_path)
-            mesh.vertices = np.asarray(mesh.vertices, np.float64) - np.asarray(mesh.vertices, np.float64).mean(0)
-            mesh.export(tmp / "object.ply")
-            doc["object"] = {"mesh": "object.ply", "name": f"intercap_{motion:02d}"}
+            write_intercap_object(tmp, objects_dir, motion, doc)
         if fits is not None:
-            fits = Path(fits)
-            try:
-                with open(fits, "rb") as f:
-                    per_frame = pickle.load(f)
-                pose = np.array([np.asarray(per_frame[i]["ob_pose"], np.float64).reshape(3) for i in range(first, last + 1)])
-                trans = np.array([np.asarray(per_frame[i]["ob_trans"], np.float64).reshape(3) for i in range(first, last + 1)])
-            except (OSError, pickle.UnpicklingError, KeyError, IndexError, TypeError) as exc:
-                raise DatasetImportError(f"{fits}: needs one dict with ob_pose, ob_trans per frame {first}..{last}: {exc}") from exc
-            (tmp / "ground_truth").mkdir()
-            np.savez(tmp / "ground_truth" / "object_poses.npz",
-                     R=np.stack([rotation_from_rodrigues(p) for p in pose]), t=trans)
+            write_intercap_fits(tmp, fits, first, last)
         (tmp / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
         write_json(tmp / "intercap_import.json", {"sequence": str(seq), "subject": subject, "motion": motion,
                                                   "calibration": f"calibration_{which}", "dropped": dropped})

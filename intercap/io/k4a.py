@@ -35,9 +35,9 @@ from intercap.io.k4a_recording import (
     K4AError,
     K4AMissingError,
     Recording,
-    _decode_color,
-    _frame_blocks,
+    decode_color,
     decode_depth,
+    frame_blocks,
     open_recording,
 )
 
@@ -240,7 +240,7 @@ def _import_device(rec: Recording, size, lens, cam_dir: Path, frames: list[int],
                 raise K4AError(f"{rec.path}: a COLOR frame is cut short (truncated recording?)")
             (cam_dir / "color" / f"{i:06d}.jpg").write_bytes(color)  # the JPEG as recorded, no re-encoding
         else:
-            img = _decode_color(rec, color)
+            img = decode_color(rec, color)
             if (w, h) != rec.color_size:
                 img = cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
             cv2.imwrite(str(cam_dir / "color" / f"{i:06d}.jpg"), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
@@ -248,7 +248,7 @@ def _import_device(rec: Recording, size, lens, cam_dir: Path, frames: list[int],
             ok, buf = cv2.imencode(".png", reg_fn(decode_depth(rec, depth)), _PNG_FAST)
             (cam_dir / "depth" / f"{i:06d}.png").write_bytes(buf.tobytes())
 
-    blocks = _frame_blocks(rec, wanted)
+    blocks = frame_blocks(rec, wanted)
     if threads <= 1:
         for i, (color, depth) in zip(frames, blocks):
             work(i, color, depth)
@@ -261,6 +261,65 @@ def _import_device(rec: Recording, size, lens, cam_dir: Path, frames: list[int],
                 jobs.pop(0).result()
         for j in jobs:
             j.result()
+
+
+def _import_devices(recs, al: Alignment, sel, sizes, lenses, tmp: Path, names, workers: int) -> None:
+    """Each device's selected frames into tmp/<name>/: one process per device (at most `workers` at a time)
+    for a rig, else `workers` threads."""
+    tasks = []
+    for d, r in enumerate(recs):
+        rows = [(i, al.frames[g, d], al.depth[g, d]) for i, g in enumerate(sel) if al.frames[g, d] >= 0]
+        wanted = [(int(r.color_ts[c]), int(r.depth_ts[k]) if k >= 0 else None) for _, c, k in rows]
+        tasks.append((r, sizes[d], lenses[d], tmp / names[d], [i for i, _, _ in rows], wanted))
+    if len(recs) > 1 and workers > 1:
+        # one process per device at a time: demux, registration and PNG encoding of different
+        # devices share nothing, and processes sidestep the GIL (threads gain little here)
+        import multiprocessing as mp
+
+        ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
+        with ProcessPoolExecutor(max_workers=min(workers, len(recs)), mp_context=ctx) as pool:
+            for job in [pool.submit(_import_device, *t, 1) for t in tasks]:
+                job.result()
+    else:
+        for t in tasks:
+            _import_device(*t, max(1, workers))
+
+
+def _write_session_files(tmp: Path, recs, al: Alignment, sel, names, lenses, poses, placeholders, calibration,
+                         stride: int) -> tuple[dict, dict, float]:
+    """calibration.json, session.yaml and k4a_import.json in tmp; returns (dropped frames, frames without
+    depth) per camera and the session's fps."""
+    dropped = {n: [int(i) for i, g in enumerate(sel) if al.frames[g, d] < 0] for d, n in enumerate(names)}
+    no_depth = {n: [int(i) for i, g in enumerate(sel) if al.frames[g, d] >= 0 and al.depth[g, d] < 0]
+                for d, n in enumerate(names)}
+    fps = al.fps / stride
+    cams = []
+    for d, n in enumerate(names):
+        lens = lenses[d]
+        cams.append({"name": n, "width": lens.width, "height": lens.height, "K": lens.K.tolist(),
+                     # OpenCV rational model; the Azure Kinect's codx, cody are zero (checked on parsing)
+                     "dist": lens.dist.tolist(), "T_world_from_cam": poses[d].tolist()})
+    world = ("metres; OpenCV camera axes; the world is the colour camera of the first recording "
+             f"({recs[0].path.name})" if calibration is None else f"metres; rig poses from {calibration}")
+    calib = {"world": world, "cameras": cams}
+    if placeholders:
+        calib["extrinsics_unknown"] = placeholders
+    (tmp / "calibration.json").write_text(json.dumps(calib, indent=1) + "\n")
+    (tmp / "session.yaml").write_text(f"fps: {fps:g}\n")
+    report = {
+        "source": "Azure Kinect recordings",
+        "cameras": [{"name": n, "file": str(r.path), "serial": r.serial, "sync_mode": r.sync_mode,
+                     "color_mode": r.color_mode, "depth_mode": r.depth_mode,
+                     "start_offset_ns": r.start_offset_ns, "depth_delay_ns": r.depth_delay_ns,
+                     "dropped_frames": dropped[n], "frames_without_depth": no_depth[n],
+                     "device_time_ns": [int(r.color_ts[al.frames[g, d]]) if al.frames[g, d] >= 0 else None
+                                        for g in sel]}
+                    for d, (n, r) in enumerate(zip(names, recs))],
+        "frame_time_ns": [int(al.times_ns[g]) for g in sel],
+        "fps": fps, "stride": stride, "aligned_frames_total": int(len(al.times_ns)),
+    }
+    (tmp / "k4a_import.json").write_text(json.dumps(report, indent=1) + "\n")
+    return dropped, no_depth, fps
 
 
 def import_k4a(
@@ -308,54 +367,9 @@ def import_k4a(
     if tmp.exists():
         shutil.rmtree(tmp)
     try:
-        tasks = []
-        for d, r in enumerate(recs):
-            rows = [(i, al.frames[g, d], al.depth[g, d]) for i, g in enumerate(sel) if al.frames[g, d] >= 0]
-            wanted = [(int(r.color_ts[c]), int(r.depth_ts[k]) if k >= 0 else None) for _, c, k in rows]
-            tasks.append((r, sizes[d], lenses[d], tmp / names[d], [i for i, _, _ in rows], wanted))
-        if len(recs) > 1 and workers > 1:
-            # one process per device at a time: demux, registration and PNG encoding of different
-            # devices share nothing, and processes sidestep the GIL (threads gain little here)
-            import multiprocessing as mp
-
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods() else "spawn")
-            with ProcessPoolExecutor(max_workers=min(workers, len(recs)), mp_context=ctx) as pool:
-                for job in [pool.submit(_import_device, *t, 1) for t in tasks]:
-                    job.result()
-        else:
-            for t in tasks:
-                _import_device(*t, max(1, workers))
-
-        dropped = {n: [int(i) for i, g in enumerate(sel) if al.frames[g, d] < 0] for d, n in enumerate(names)}
-        no_depth = {n: [int(i) for i, g in enumerate(sel) if al.frames[g, d] >= 0 and al.depth[g, d] < 0]
-                    for d, n in enumerate(names)}
-        fps = al.fps / stride
-        cams = []
-        for d, n in enumerate(names):
-            lens = lenses[d]
-            cams.append({"name": n, "width": lens.width, "height": lens.height, "K": lens.K.tolist(),
-                         # OpenCV rational model; the Azure Kinect's codx, cody are zero (checked on parsing)
-                         "dist": lens.dist.tolist(), "T_world_from_cam": poses[d].tolist()})
-        world = ("metres; OpenCV camera axes; the world is the colour camera of the first recording "
-                 f"({recs[0].path.name})" if calibration is None else f"metres; rig poses from {calibration}")
-        calib = {"world": world, "cameras": cams}
-        if placeholders:
-            calib["extrinsics_unknown"] = placeholders
-        (tmp / "calibration.json").write_text(json.dumps(calib, indent=1) + "\n")
-        (tmp / "session.yaml").write_text(f"fps: {fps:g}\n")
-        report = {
-            "source": "Azure Kinect recordings",
-            "cameras": [{"name": n, "file": str(r.path), "serial": r.serial, "sync_mode": r.sync_mode,
-                         "color_mode": r.color_mode, "depth_mode": r.depth_mode,
-                         "start_offset_ns": r.start_offset_ns, "depth_delay_ns": r.depth_delay_ns,
-                         "dropped_frames": dropped[n], "frames_without_depth": no_depth[n],
-                         "device_time_ns": [int(r.color_ts[al.frames[g, d]]) if al.frames[g, d] >= 0 else None
-                                            for g in sel]}
-                        for d, (n, r) in enumerate(zip(names, recs))],
-            "frame_time_ns": [int(al.times_ns[g]) for g in sel],
-            "fps": fps, "stride": stride, "aligned_frames_total": int(len(al.times_ns)),
-        }
-        (tmp / "k4a_import.json").write_text(json.dumps(report, indent=1) + "\n")
+        _import_devices(recs, al, sel, sizes, lenses, tmp, names, workers)
+        dropped, no_depth, fps = _write_session_files(tmp, recs, al, sel, names, lenses, poses, placeholders,
+                                                      calibration, stride)
         if out.exists():
             shutil.rmtree(out) if out.is_dir() else out.unlink()
         os.rename(tmp, out)

@@ -212,7 +212,7 @@ def _packets(container, path: Path, streams):
         yield pkt
 
 
-def _decode_color(rec: Recording, data: bytes) -> np.ndarray:
+def decode_color(rec: Recording, data: bytes) -> np.ndarray:
     """Raw colour block -> (h, w, 3) uint8 BGR (OpenCV order)."""
     import cv2
 
@@ -241,7 +241,7 @@ def decode_depth(rec: Recording, data: bytes) -> np.ndarray:
     return np.frombuffer(data, dtype=">u2" if rec.depth_big_endian else "<u2").astype(np.uint16).reshape(h, w)
 
 
-def _frame_blocks(rec: Recording, wanted):
+def frame_blocks(rec: Recording, wanted):
     """Yield (colour bytes, depth bytes or None) for `wanted` = [(colour pts, depth pts or None)]
     in time order, demuxing the file once; packets not wanted are dropped on the way."""
     c = _open(rec.path)

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from intercap.io.files import _atomic_target
+from intercap.io.files import atomic_target
 
 
 def mesh_ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> bytes:
@@ -37,6 +37,6 @@ def mesh_ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray |
 def write_mesh_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
     """Write a mesh as binary PLY, atomically (a crash never leaves a truncated file)."""
     path = Path(path)
-    tmp = _atomic_target(path, ".ply")
+    tmp = atomic_target(path, ".ply")
     tmp.write_bytes(mesh_ply_bytes(vertices, faces, colors))
     os.replace(tmp, path)

@@ -121,7 +121,7 @@ def lockstep(runs: list, serve: Callable[[list], list]) -> list:
 def chunk_groups(T: int, cfg, section, align: int = 1) -> list[tuple[Chunk, ...]]:
     """The take's chunks (`run.workers` x the section's `side_by_side`), dealt to the processes: each process runs
     a run of consecutive chunks side by side."""
-    workers = worker_count(cfg)
+    workers = parallel.worker_count(cfg)
     chunks = frame_chunks(T, workers * max(1, section.side_by_side), cfg.run.min_frames_per_worker, align)
     n = min(workers, len(chunks))
     bounds = [round(k * len(chunks) / n) for k in range(n + 1)]

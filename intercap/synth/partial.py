@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 
 from intercap.io.files import read_json, write_json
-from intercap.synth.reframe import _link_tree
+from intercap.synth.reframe import link_tree
 
 _KEYPOINT_KEYS = ("pose_keypoints_2d", "hand_left_keypoints_2d", "hand_right_keypoints_2d", "face_keypoints_2d")
 
@@ -57,7 +57,7 @@ def crop_view(session_dir, out_dir, camera: int | str, box: tuple[int, int, int,
         if path.name == cam["name"] or path.name == "calibration.json":
             continue
         if path.is_dir():
-            _link_tree(path, dst / path.name)
+            link_tree(path, dst / path.name)
         else:
             shutil.copy2(path, dst / path.name)
     for path in (src / cam["name"]).rglob("*"):

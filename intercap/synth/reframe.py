@@ -20,7 +20,7 @@ from intercap.io.files import read_json, save_npy, save_npz, write_json
 _FRAME_FREE = ("body_faces.npy", "contact.npy")
 
 
-def _link_tree(src: Path, dst: Path) -> None:
+def link_tree(src: Path, dst: Path) -> None:
     """Copy a folder of frame files by hard links where the file system allows (fast, no extra space)."""
     for path in src.rglob("*"):
         target = dst / path.relative_to(src)
@@ -56,7 +56,7 @@ def reexpress(session_dir, out_dir, T_new_from_old: np.ndarray) -> Path:
         if path.name in ("calibration.json", "session.yaml", "ground_truth"):
             continue
         if path.is_dir():
-            _link_tree(path, dst / path.name)
+            link_tree(path, dst / path.name)
         else:
             shutil.copy2(path, dst / path.name)
 

@@ -44,7 +44,7 @@ def test_a_late_camera_is_read_from_its_keypoints(lag_ms):
 def test_the_warning_names_only_the_cameras_past_the_limit():
     from intercap.config import load_config
     from intercap.evaluation.report import unsynchronised_warning
-    from intercap.stages.global_fit.stage import unsynchronised
+    from intercap.evaluation.warnings import unsynchronised
 
     text = unsynchronised({"cam0": -0.4, "cam1": 0.3, "cam2": 10.2}, 4.0)
     assert text.startswith("cam2 +10 ms") and "cam0" not in text and "cam1" not in text

@@ -76,7 +76,7 @@ def test_an_object_held_where_contact_was_missed_is_no_flight():
 
     from intercap.config import GlobalConfig
     from intercap.geometry.ground import GroundPlane
-    from intercap.stages.global_fit.stage import ObjectShape, PerFrameResults, free_flight
+    from intercap.stages.global_fit.observations import ObjectShape, PerFrameResults, free_flight
 
     poses, flight, _ = generator_flight("toss")
     tossed = poses[:, :3, 3] + np.random.default_rng(3).normal(0, 0.002, (len(poses), 3))
@@ -186,7 +186,7 @@ def test_global_stage_flight_labels_and_gravity_without_floor(with_ground):
 
     from intercap.config import GlobalConfig
     from intercap.geometry.ground import GroundPlane
-    from intercap.stages.global_fit.stage import ObjectShape, PerFrameResults, free_flight
+    from intercap.stages.global_fit.observations import ObjectShape, PerFrameResults, free_flight
 
     tilt = Rotation.from_rotvec([0.3, 0.2, -1.0])
     poses, flight, touching = generator_flight("toss")

@@ -12,7 +12,7 @@ import torch
 from scipy import ndimage
 
 from intercap.cli import main
-from intercap.geometry.cameras import _remove_intrinsics, pixel_grid, undistort
+from intercap.geometry.cameras import pixel_grid, remove_intrinsics, undistort
 from intercap.io.k4a import K4AError, K4AMissingError, decode_depth, import_k4a, open_recording
 from intercap.io.k4a_calibration import DepthRegistration, parse_device_calibration, undistorted_rays
 from intercap.session import validate
@@ -128,7 +128,7 @@ def test_numpy_undistortion_matches_the_camera_model():
     calib = parse_device_calibration(device_calibration_json(DEPTH_P, COLOR_P, R_CD, T_CD), "720P", "NFOV_UNBINNED")
     for lens in (calib.depth, calib.color):
         pix = pixel_grid(lens.height, lens.width, stride=7, dtype=torch.float64)[None]
-        ref = undistort(_remove_intrinsics(pix, torch.as_tensor(lens.K[None])), torch.as_tensor(lens.dist[None]))
+        ref = undistort(remove_intrinsics(pix, torch.as_tensor(lens.K[None])), torch.as_tensor(lens.dist[None]))
         ours = undistorted_rays(lens, pix[0].numpy())
         ok = np.isfinite(ours).all(1)
         assert ok.mean() > 0.99

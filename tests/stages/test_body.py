@@ -11,6 +11,7 @@ from conftest import SAMPLE_SESSION, trimmed_copy
 from host_waits import watch_evaluations
 
 from intercap.body_models import BodyParams, load_body_model
+from intercap.body_models.base import axis_angle_to_matrix
 from intercap.config import load_config
 from intercap.energies import losses
 from intercap.geometry.cameras import Cameras, project
@@ -18,6 +19,30 @@ from intercap.stages.chunks import chunk_groups
 from intercap.pipeline import run_pipeline
 from intercap.session import Session
 from intercap.stages.body import stage as body
+from intercap.stages.body.fitter import (
+    BodyFitter,
+    BodySpheres,
+    failure_limit,
+    fit_to_data_mm,
+    frame_energy,
+    refit_from_evidence,
+    stature,
+    turn_about,
+    upright_template,
+    vertex_normals,
+    visible_vertices,
+)
+from intercap.stages.body.observations import (
+    FOOT_KEYPOINTS,
+    BodyObservations,
+    KeypointSource,
+    PersonPoints,
+    foot_views,
+    reject_disagreeing_views,
+    triangulate,
+    usable_frames,
+)
+from intercap.stages.body.terms import GROUND_SUPPORT_TERM, GROUND_TERM
 
 FRAMES = 4
 
@@ -38,10 +63,10 @@ def truth(session_dir) -> tuple[BodyParams, np.ndarray]:
     return BodyParams.from_numpy_dict(np.load(gt / "body_params.npz")), np.load(gt / "keypoints3d.npy")
 
 
-def observations(session: Session, frame_ids, cfg, cameras) -> body.BodyObservations:
-    keypoints = body.KeypointSource(session, session.root).batch(frame_ids, cfg.min_keypoint_confidence)
-    points, valid = body.PersonPoints(session, cameras, cfg, session.root).batch(frame_ids, keypoints)
-    return body.BodyObservations(np.asarray(frame_ids), torch.from_numpy(keypoints), points, valid)
+def observations(session: Session, frame_ids, cfg, cameras) -> BodyObservations:
+    keypoints = KeypointSource(session, session.root).batch(frame_ids, cfg.min_keypoint_confidence)
+    points, valid = PersonPoints(session, cameras, cfg, session.root).batch(frame_ids, keypoints)
+    return BodyObservations(np.asarray(frame_ids), torch.from_numpy(keypoints), points, valid)
 
 
 def frames_0_and_2(sample):
@@ -118,16 +143,16 @@ def test_correspondences_see_as_the_whole_mesh_does(model, sample):
     session = Session.load(sample)
     cameras = Cameras.from_infos(session.cameras)
     params, _ = truth(sample)
-    fitter = body.BodyFitter(model, cameras, load_config().body)
+    fitter = BodyFitter(model, cameras, load_config().body)
     with torch.no_grad():
         vertices = model(params[0]).vertices
-        normals = body.vertex_normals(vertices, model.faces)
+        normals = vertex_normals(vertices, model.faces)
         ring = model.sparse_forward(params[0], fitter.ring_vertices).vertices
-        ring_normals = body.vertex_normals(ring, fitter.ring_faces)
+        ring_normals = vertex_normals(ring, fitter.ring_faces)
     assert len(fitter.ring_vertices) < 0.6 * vertices.shape[1]
     assert torch.allclose(ring_normals[:, fitter.subset_in_ring], normals[:, fitter.subset], atol=1e-4)
-    whole = body.visible_vertices(vertices, normals, fitter.subset, cameras, 100, 0.03)
-    from_ring = body.visible_vertices(ring, ring_normals, fitter.subset_in_ring, cameras, 100, 0.03)
+    whole = visible_vertices(vertices, normals, fitter.subset, cameras, 100, 0.03)
+    from_ring = visible_vertices(ring, ring_normals, fitter.subset_in_ring, cameras, 100, 0.03)
     assert (whole == from_ring).float().mean() > 0.98
 
 
@@ -138,7 +163,7 @@ def test_triangulation_recovers_points():
     pixels, _ = project(points[0], cameras)  # (C, 3, 2)
     keypoints = torch.cat([pixels, torch.ones(*pixels.shape[:2], 1)], -1)[None]  # (1, C, 3, 3)
     keypoints[0, 1:, 2, 2] = 0  # the third point is seen by one view only
-    found, valid = body.triangulate(keypoints, cameras)
+    found, valid = triangulate(keypoints, cameras)
     assert valid[0].tolist() == [True, True, False]
     assert torch.allclose(found[0, :2], points[0, :2], atol=1e-4)
 
@@ -149,9 +174,9 @@ def test_visibility_sees_the_front_not_the_back(model, sample):
     params, _ = truth(sample)
     with torch.no_grad():
         vertices = model(params[0]).vertices
-    normals = body.vertex_normals(vertices, model.faces)
+    normals = vertex_normals(vertices, model.faces)
     subset = model.fitting_subsample
-    visible = body.visible_vertices(vertices, normals, subset, cameras, cells=100, margin=0.03)[0]  # (C, N)
+    visible = visible_vertices(vertices, normals, subset, cameras, cells=100, margin=0.03)[0]  # (C, N)
     fraction = visible.float().mean(1)
     assert ((fraction > 0.2) & (fraction < 0.6)).all(), fraction
     assert visible.any(0).float().mean() > 0.8  # four views around the person see nearly all of it
@@ -167,7 +192,7 @@ def test_visibility_sees_the_front_not_the_back(model, sample):
 
 
 def test_self_penetration_spheres(model):
-    spheres = body.BodySpheres.from_model(model)
+    spheres = BodySpheres.from_model(model)
     params = model.init_params(2)
     # Frame 1: the left arm swung down and across through the trunk, the wrist beyond the midline.
     params.body_pose[1, model.body_joint_names.index("upperarm01.L")] = torch.tensor([0.0, 1.6, 0.0])
@@ -183,7 +208,7 @@ def test_fit_recovers_a_perturbed_pose(model, sample):
     cameras, cfg, params, keypoints3d, frames, obs = frames_0_and_2(sample)
     start = perturbed(params[frames[0]:frames[0] + 1].map(lambda t: t.expand(len(frames), *t.shape[1:]).clone()))
     before = mpjpe_mm(model, start, keypoints3d[frames])
-    fitted, stats = body.BodyFitter(model, cameras, cfg).fit(obs, start)
+    fitted, stats = BodyFitter(model, cameras, cfg).fit(obs, start)
     after = mpjpe_mm(model, fitted, keypoints3d[frames])
     assert (before > 60).all(), before
     assert (after < 25).all(), after
@@ -200,7 +225,7 @@ def test_a_body_evaluation_never_waits_on_the_gpu(model, sample, monkeypatch, sh
     that waits on the GPU. The correspondence refresh between steps may."""
     cameras, cfg, params, _, frames, obs = frames_0_and_2(sample)
     cfg = dataclasses.replace(cfg, orient_steps=2, pose_steps=2, full_steps=2, inner_iterations=4)
-    fitter = body.BodyFitter(model, cameras, cfg)
+    fitter = BodyFitter(model, cameras, cfg)
     if shape_held:
         fitter.held_shape = params.shape[0].clone()
     fitter.ground = (torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))  # E_G and E_S count too
@@ -218,7 +243,7 @@ def test_body_fit_replayed_from_recordings_is_the_eager_fit(model, sample, repla
     cfg = dataclasses.replace(cfg, orient_steps=2, pose_steps=2, full_steps=2, inner_iterations=4)
     fitted = {}
     for graphs in (False, True):
-        fitter = body.BodyFitter(model, cameras, dataclasses.replace(cfg, cuda_graphs=graphs))
+        fitter = BodyFitter(model, cameras, dataclasses.replace(cfg, cuda_graphs=graphs))
         fitted[graphs], _ = fitter.fit(obs, perturbed(params[frames]))
         assert (len(replay_on_cpu) > 30) == graphs, len(replay_on_cpu)
     for name, eager in fitted[False].tensors().items():
@@ -226,13 +251,13 @@ def test_body_fit_replayed_from_recordings_is_the_eager_fit(model, sample, repla
     assert not torch.equal(fitted[False].body_pose, perturbed(params[frames]).body_pose)
 
 
-def frame_2_fitter(model, sample) -> tuple[BodyParams, body.BodyObservations, body.BodyFitter]:
+def frame_2_fitter(model, sample) -> tuple[BodyParams, BodyObservations, BodyFitter]:
     """(true params, frame 2's observations, a body fitter with no floor) of the sample."""
     session = Session.load(sample)
     cameras = Cameras.from_infos(session.cameras)
     cfg = load_config().body
     params, _ = truth(sample)
-    return params, observations(session, session.frame_ids[[2]], cfg, cameras), body.BodyFitter(model, cameras, cfg)
+    return params, observations(session, session.frame_ids[[2]], cfg, cameras), BodyFitter(model, cameras, cfg)
 
 
 def test_ground_term_counts_only_vertices_below_the_floor(model, sample):
@@ -240,14 +265,14 @@ def test_ground_term_counts_only_vertices_below_the_floor(model, sample):
     the squared depth of the fitting vertices below it for the same pose 10 cm lower, pushing it up;
     absent when no floor is set (the global stage has its own E_G and must not count it twice)."""
     params, obs, fitter = frame_2_fitter(model, sample)
-    assert "ground" not in fitter.energy_terms(params[2], obs, ("ground",))
+    assert "ground" not in fitter.energy_terms(params[2], obs, (GROUND_TERM,))
     fitter.ground = (torch.zeros(3), torch.tensor([0.0, 0.0, 1.0]))
     standing = params[2].clone()
     sunk = params[2].clone()
     sunk.transl[:, 2] -= 0.10
     sunk.transl.requires_grad_(True)
-    assert float(fitter.energy_terms(standing, obs, ("ground",))["ground"]) < 1e-5
-    energy = fitter.energy_terms(sunk, obs, ("ground",))["ground"]
+    assert float(fitter.energy_terms(standing, obs, (GROUND_TERM,))["ground"]) < 1e-5
+    energy = fitter.energy_terms(sunk, obs, (GROUND_TERM,))["ground"]
     with torch.no_grad():
         depth = torch.relu(-model(sunk).vertices[0, fitter.subset, 2])
     assert torch.allclose(energy, (depth**2).sum()[None], rtol=1e-4) and float(energy) > 1e-3
@@ -266,16 +291,16 @@ def test_ground_support_pulls_a_hovering_body_down_where_the_feet_are_unseen(mod
         lifted = params[2].clone()
         lifted.transl[:, 2] += lift
         lifted.transl.requires_grad_(grad)
-        energy = fitter.energy_terms(lifted, obs, ("ground_support",))["ground_support"]
+        energy = fitter.energy_terms(lifted, obs, (GROUND_SUPPORT_TERM,))["ground_support"]
         if grad:
             energy.sum().backward()
             return energy.detach(), lifted.transl.grad
         return energy
 
-    assert int(body.foot_views(obs.keypoints)[0]) == 4
+    assert int(foot_views(obs.keypoints)[0]) == 4
     assert float(support(0.10)) == 0.0  # the feet are seen: their keypoints place them
-    obs.keypoints[:, 1:, body.FOOT_KEYPOINTS] = 0  # one view left sees the feet
-    assert int(body.foot_views(obs.keypoints)[0]) == 1
+    obs.keypoints[:, 1:, FOOT_KEYPOINTS] = 0  # one view left sees the feet
+    assert int(foot_views(obs.keypoints)[0]) == 1
     assert float(support(0.0)) < 0.02**2
     energy, grad = support(0.10, grad=True)
     assert 0.09**2 < float(energy) < 0.13**2
@@ -292,9 +317,9 @@ def test_missing_keypoint_views_and_depth_still_fit(model, sample):
     obs = observations(session, session.frame_ids[[2]], cfg, cameras)
     obs.keypoints[:, 1:3] = 0
     obs.point_valid[:, 0] = False
-    assert body.usable_frames(obs.keypoints, obs.point_valid, cfg).item()
+    assert usable_frames(obs.keypoints, obs.point_valid, cfg).item()
     start = perturbed(params[2])
-    fitted, _ = body.BodyFitter(model, cameras, cfg).fit(obs, start)
+    fitted, _ = BodyFitter(model, cameras, cfg).fit(obs, start)
     assert mpjpe_mm(model, fitted, keypoints3d[[2]])[0] < 40
 
 
@@ -350,10 +375,10 @@ def test_detect_stage_feeds_the_body_fit_when_the_session_has_no_keypoints(sampl
     out = tmp_path / "out"
     session = Session.load(bare)
     with pytest.raises(RuntimeError, match="detect"):
-        body.KeypointSource(session, out)
+        KeypointSource(session, out)
     metrics = run_pipeline(bare, out, load_config(), stages=["detect"], progress=False)["detect"]
     assert metrics["keypoints"] == "mediapipe" and metrics["written"] == 4
-    keypoints = body.KeypointSource(session, out).batch(session.frame_ids, 0.2)  # (1, 4, 67, 3)
+    keypoints = KeypointSource(session, out).batch(session.frame_ids, 0.2)  # (1, 4, 67, 3)
     # The detector finds the person in most views; its keypoints land near the truth's projections.
     cameras = Cameras.from_infos(session.cameras)
     truth_pixels, _ = project(torch.from_numpy(np.load(bare / "ground_truth" / "keypoints3d.npy")[0, :25]), cameras)
@@ -379,8 +404,10 @@ def test_chunks_are_dealt_to_the_processes_in_runs():
     groups = body.chunk_groups(120, cfg)
     assert [[(c.lo, c.hi) for c in g] for g in groups] == [[(0, 16), (16, 40), (40, 64)], [(64, 80), (80, 96),
                                                                                           (96, 120)]]
-    gpu = load_config(overrides=["run.device=cuda:0", "body.side_by_side=3", "body.side_by_side_gpu=4",
-                                 "run.min_frames_per_worker=10", "body.batch_frames_gpu=8"])
+    from intercap.config import resolved  # the GPU's settings, as the pipeline gives the stages
+
+    gpu = resolved(load_config(overrides=["run.device=cuda:0", "body.side_by_side=3", "body.side_by_side_gpu=4",
+                                          "run.min_frames_per_worker=10", "body.batch_frames_gpu=8"]), 5.0)
     assert [len(g) for g in body.chunk_groups(120, gpu)] == [4]  # one process on a GPU, four chunks in it
     assert [len(g) for g in body.chunk_groups(15, cfg)] == [1]  # too short to cut
     # the object stage's own settings: one chunk per process on the CPU, side by side on a GPU
@@ -424,13 +451,13 @@ def test_chunks_side_by_side_resume_where_each_stopped(tmp_path, monkeypatch):
         np.savez(checkpoint, **progress)
     (out / "body" / "DONE.json").unlink()
     fitted = []
-    original = body.BodyFitter.fit
+    original = BodyFitter.fit
 
     def counting_fit(self, obs, init, *args, **kwargs):
         fitted.append(obs.batch_size)
         return original(self, obs, init, *args, **kwargs)
 
-    monkeypatch.setattr(body.BodyFitter, "fit", counting_fit)
+    monkeypatch.setattr(BodyFitter, "fit", counting_fit)
     run_pipeline(session, out, cfg, stages=["body"], progress=False)
     assert fitted == [4]  # the second batch of both chunks, in one fit
     assert np.allclose(np.load(out / "keypoints3d.npy"), keypoints, atol=1e-4)
@@ -441,9 +468,9 @@ def test_a_frame_is_fitted_the_same_alone_and_in_a_batch(model, sample):
     not depend on the frames fitted beside it, up to float rounding that the non-convex fit amplifies
     (~1 mm here). One L-BFGS over the batch's summed energy moved it 2.7 mm."""
     cameras, cfg, params, keypoints3d, frames, obs = frames_0_and_2(sample)
-    fitter = body.BodyFitter(model, cameras, cfg)
+    fitter = BodyFitter(model, cameras, cfg)
     fitter.held_shape = params.shape[0].clone()
-    template = body.upright_template(model, np.array([0.0, 0.0, 1.0]))
+    template = upright_template(model, np.array([0.0, 0.0, 1.0]))
     both, _ = fitter.fit(obs, fitter.initialise(obs, template))
     alone, _ = fitter.fit(obs.select([1]), fitter.initialise(obs.select([1]), template))
     with torch.no_grad():
@@ -461,22 +488,22 @@ def test_a_failed_fit_is_refitted_from_the_evidence(model, sample):
     with torch.no_grad():
         centre = model(wrong).joints[:, 0]
         up = torch.tensor([0.0, 0.0, 1.0]).expand(2, 3)  # the sample's world is z-up
-        body.turn_about(wrong, body.axis_angle_to_matrix(up * math.pi), centre)
+        turn_about(wrong, axis_angle_to_matrix(up * math.pi), centre)
         wrong.transl += torch.tensor([0.4, 0.0, 0.0])
-        truth_gap = body.fit_to_data_mm(model(good).vertices, obs)
-        wrong_gap = body.fit_to_data_mm(model(wrong).vertices, obs)
+        truth_gap = fit_to_data_mm(model(good).vertices, obs)
+        wrong_gap = fit_to_data_mm(model(wrong).vertices, obs)
     assert (truth_gap < 15).all(), truth_gap  # the figure: the truth lies on its points
     assert (wrong_gap > 3 * cfg.track_floor_mm).all(), wrong_gap
-    assert body.failure_limit(truth_gap, cfg.track_factor, cfg.track_floor_mm) == cfg.track_floor_mm
-    assert body.failure_limit(np.array([np.nan]), cfg.track_prior_factor) == np.inf  # no history: no verdict
-    fitter = body.BodyFitter(model, cameras, cfg)
-    template = body.upright_template(model, np.array([0.0, 0.0, 1.0]))
-    energy = body.frame_energy(fitter, fitter.final_terms(wrong, obs))
-    refitted, replaced = body.refit_from_evidence(fitter, obs, wrong, energy, np.ones(2, bool), template)
+    assert failure_limit(truth_gap, cfg.track_factor, cfg.track_floor_mm) == cfg.track_floor_mm
+    assert failure_limit(np.array([np.nan]), cfg.track_prior_factor) == np.inf  # no history: no verdict
+    fitter = BodyFitter(model, cameras, cfg)
+    template = upright_template(model, np.array([0.0, 0.0, 1.0]))
+    energy = frame_energy(fitter, fitter.final_terms(wrong, obs))
+    refitted, replaced = refit_from_evidence(fitter, obs, wrong, energy, np.ones(2, bool), template)
     assert replaced.all()
     with torch.no_grad():
-        assert (body.fit_to_data_mm(model(refitted).vertices, obs) < 20).all()
-        assert (body.frame_energy(fitter, fitter.final_terms(refitted, obs)) < energy).all()
+        assert (fit_to_data_mm(model(refitted).vertices, obs) < 20).all()
+        assert (frame_energy(fitter, fitter.final_terms(refitted, obs)) < energy).all()
     assert (mpjpe_mm(model, refitted, keypoints3d[frames]) < 40).all()
 
 
@@ -494,8 +521,8 @@ def test_a_child_seen_by_one_camera_is_fitted_at_its_size(tmp_path, model):
     run_pipeline(session, out, cfg, stages=["body"], progress=False)
     fitted = np.load(out / "body_params.npz")
     assert np.median(fitted["fit_to_data_mm"]) < 25, fitted["fit_to_data_mm"]
-    true_height = float(body.stature(model, torch.tensor([child], dtype=torch.float32)))
-    fitted_height = float(body.stature(model, torch.from_numpy(fitted["shape_mean"][None]).float()))
+    true_height = float(stature(model, torch.tensor([child], dtype=torch.float32)))
+    fitted_height = float(stature(model, torch.from_numpy(fitted["shape_mean"][None]).float()))
     assert abs(fitted_height - true_height) < 0.08 * true_height, (fitted_height, true_height)
     gt = np.load(session / "ground_truth" / "keypoints3d.npy")[:, :25]
     keypoints = np.load(out / "keypoints3d.npy")
@@ -529,7 +556,7 @@ def test_a_view_whose_detections_disagree_with_the_others_is_dropped():
     keypoints[..., 0] += 25.0 * wrong
     keypoints[1, 2:, 30, 2] = 0  # keypoint 30 of frame 1: two views only, one of them off
     keypoints[1, 0, 30, 0] += 25.0
-    checked = body.reject_disagreeing_views(keypoints, cameras, threshold_px=30.0)
+    checked = reject_disagreeing_views(keypoints, cameras, threshold_px=30.0)
     dropped = (keypoints[..., 2] > 0) & (checked[..., 2] == 0)
     assert torch.equal(dropped, wrong), (dropped ^ wrong).nonzero()
 
@@ -559,9 +586,9 @@ def test_a_person_the_depth_background_took_in_is_masked_from_the_keypoints_dept
     write_json(tmp_path / "prepare" / "ground.json", {**ground, "inlier_ratio": 1.0, "rmse_m": 0.0})
     cameras = Cameras.from_infos(session.cameras)
     frame = int(session.frame_ids[10])
-    keypoints = body.KeypointSource(session, session.root).batch(np.array([frame]), cfg.min_keypoint_confidence)[0]
-    walking = body.PersonPoints(session, cameras, cfg, tmp_path)
-    still = body.PersonPoints(session, cameras, cfg, tmp_path)
+    keypoints = KeypointSource(session, session.root).batch(np.array([frame]), cfg.min_keypoint_confidence)[0]
+    walking = PersonPoints(session, cameras, cfg, tmp_path)
+    still = PersonPoints(session, cameras, cfg, tmp_path)
     still._background = [session.read_depth(c, frame) for c in range(session.num_cameras)]  # the person in it
     for c in range(session.num_cameras):
         truth = session.read_mask(c, frame, "person")

@@ -469,7 +469,7 @@ def test_detect_fills_only_the_views_and_frames_without_session_keypoints(tiny_s
     import contextlib
 
     from intercap.config import load_config
-    from intercap.stages.body.stage import KeypointSource
+    from intercap.stages.body.observations import KeypointSource
 
     (tiny_session / "cam0" / "keypoints" / "000001.json").unlink()  # cam0 lacks frame 1
     (tiny_session / "cam1" / "keypoints").mkdir()  # cam1: an empty folder counts as absent

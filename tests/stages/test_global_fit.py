@@ -19,8 +19,10 @@ from intercap.config import load_config
 from intercap.geometry.cameras import Cameras, project
 from intercap.io.files import save_npz, write_json
 from intercap.session import Session
+from intercap.stages.global_fit import observations
 from intercap.stages.global_fit import stage as global_fit
-from intercap.stages.global_fit.stage import GlobalFitter, ObjectShape, WindowData, windows
+from intercap.stages.global_fit.fitter import GlobalFitter, windows
+from intercap.stages.global_fit.observations import GlobalError, ObjectShape, WindowData
 
 GT = SAMPLE_SESSION / "ground_truth"
 
@@ -66,7 +68,7 @@ def exact_keypoints(model, params: BodyParams, cameras: Cameras) -> torch.Tensor
 def window_data(keypoints, R, t, shape, grasping, C, rows: bool = False) -> WindowData:
     """Keypoints only: no depth points, the object held by nothing but the terms under test.
     `rows`: the grasping frames found beforehand, as `Observations.window` finds them."""
-    from intercap.stages.body.stage import BodyObservations
+    from intercap.stages.body.observations import BodyObservations
 
     W = len(R)
     obs = BodyObservations(np.arange(W), keypoints, torch.zeros(W, C, 1, 3), torch.zeros(W, C, 1, dtype=torch.bool))
@@ -90,7 +92,7 @@ def test_windows_cover_every_frame_once():
     assert all(e - s <= 8 for s, e, _, _ in plan)
     for (s0, e0, f0, c0), (s1, e1, f1, c1) in zip(plan, plan[1:]):
         assert s1 + f1 == c0 and s1 < c0  # fixed history frames were committed before
-    with pytest.raises(global_fit.GlobalError, match="window"):
+    with pytest.raises(GlobalError, match="window"):
         windows(30, 8, 8, 2)
 
 
@@ -276,7 +278,7 @@ def test_window_seams_do_not_show(sample, model, tmp_path):
 def test_missing_per_frame_results_name_the_stage_to_run(tmp_path):
     from intercap.pipeline import run_pipeline
 
-    with pytest.raises(global_fit.GlobalError, match="run the `body` stage first"):
+    with pytest.raises(GlobalError, match="run the `body` stage first"):
         run_pipeline(SAMPLE_SESSION, tmp_path, load_config(), stages=["global"], progress=False)
 
 
@@ -354,8 +356,8 @@ def test_quality_figures_over_a_long_take_match_the_whole_take_definitions():
     R = np.stack([trimesh.transformations.rotation_matrix(a, [0, 0, 1])[:3, :3] for a in rng.uniform(0, 3, T)])
     t = rng.normal(scale=0.02, size=(T, 3)).astype(np.float32) + [0, 0, 0.15]
     body_valid, object_valid, contact = (rng.random(T) > p for p in (0.05, 0.05, 0.4))
-    per_frame = global_fit.PerFrameResults(body=None, body_valid=body_valid, R=R, t=t, object_valid=object_valid,
-                                           object_confidence=np.ones(T), contact=contact, hand_distance=None)
+    per_frame = observations.PerFrameResults(body=None, body_valid=body_valid, R=R, t=t, object_valid=object_valid,
+                                             object_confidence=np.ones(T), contact=contact, hand_distance=None)
     figures = global_fit.quality_figures(vertices, R, t, shape, per_frame, fps)
 
     both = np.flatnonzero(body_valid & object_valid & contact)
@@ -432,7 +434,7 @@ def test_object_poses_fitted_to_the_person_are_found_inside_the_body(sample, mod
     write_per_frame(tmp_path, sample, gt_body(), poses["R"], poses["t"], np.zeros(sample.num_frames, bool))
     for name in ("body_vertices.npy", "body_faces.npy"):
         publish(GT / name, tmp_path / "body" / name)
-    assert not global_fit.object_inside_body(sample, tmp_path, 0.1).any()
+    assert not observations.object_inside_body(sample, tmp_path, 0.1).any()
     with torch.no_grad():
         pelvis = model(BodyParams.from_numpy_dict(gt_body())).joints[:, 0].numpy()
     mesh_centre = np.asarray(sample.object.load_mesh().vertices).mean(0)
@@ -440,7 +442,7 @@ def test_object_poses_fitted_to_the_person_are_found_inside_the_body(sample, mod
     wrong = np.arange(sample.num_frames) % 3 == 0
     moved["t"][wrong] = pelvis[wrong] - np.einsum("tij,j->ti", moved["R"][wrong], mesh_centre)
     save_npz(tmp_path / "object" / "object_poses.npz", **moved)
-    assert np.array_equal(global_fit.object_inside_body(sample, tmp_path, 0.1), wrong)
+    assert np.array_equal(observations.object_inside_body(sample, tmp_path, 0.1), wrong)
 
 
 def test_the_signed_distance_grid_sees_into_the_top_of_a_chairs_back():
@@ -480,8 +482,8 @@ def test_the_signed_distance_grid_is_built_once_and_rebuilt_when_its_settings_ch
     built = ObjectShape(box, 16, None, cell_m=0.01, cache=cache)
     assert cache.exists()
     builds = []
-    real = global_fit.signed_distance_grid
-    monkeypatch.setattr(global_fit, "signed_distance_grid", lambda *a: builds.append(a) or real(*a))
+    real = observations.signed_distance_grid
+    monkeypatch.setattr(observations, "signed_distance_grid", lambda *a: builds.append(a) or real(*a))
     read = ObjectShape(box, 16, None, cell_m=0.01, cache=cache)
     assert not builds and torch.equal(read.sdf, built.sdf) and torch.equal(read.hi, built.hi)
     points = torch.tensor([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0]])

@@ -16,7 +16,9 @@ from intercap.geometry.rendering import crop_observation
 from intercap.geometry.segmentation import background_depth
 from intercap.pipeline import run_pipeline
 from intercap.session import Session
-from intercap.stages.object.stage import LOST, UNTRUSTED, ObjectTracker, axis_rotation, crop_windows, predict_pose
+from intercap.stages.object.fitter import ObjectTracker, axis_rotation, predict_pose
+from intercap.stages.object.observations import crop_windows
+from intercap.stages.object.stage import LOST, UNTRUSTED
 
 SAMPLE = Path(__file__).resolve().parents[2] / "data_samples" / "sample"
 FRAMES = 10
@@ -428,7 +430,8 @@ def test_seams_are_tracked_across_as_one_process_tracks_them(box_session, tmp_pa
     """A chunk whose cold start locked onto the wrong thing (here 0.5 m off) is tracked again from
     its seam to its end, as one process tracks the take; a chunk that started right keeps its own
     poses after `seam_agree_frames` frames that match them."""
-    from intercap.stages.object.stage import join_seams, run_searches, track_steps
+    from intercap.stages.object.fitter import run_searches
+    from intercap.stages.object.stage import join_seams, track_steps
 
     cfg = load_config()
     session = Session.load(box_session)
@@ -461,7 +464,8 @@ def test_a_trusted_fit_that_turned_too_fast_is_untrusted(box_session, energy_sca
     tracking goes on from the last trusted pose; with an E_O well below the recent level (a turn
     back onto the object: `fast_turn_energy_ratio`), it is trusted as it came."""
     from intercap.geometry.symmetry import axis_angle_matrix, rotation_angle_deg
-    from intercap.stages.object.stage import REINITIALISED, TRACKED, run_searches, track_steps
+    from intercap.stages.object.fitter import run_searches
+    from intercap.stages.object.stage import REINITIALISED, TRACKED, track_steps
 
     session = Session.load(box_session)
     cfg = load_config().object
@@ -500,7 +504,7 @@ def test_a_fast_turn_the_spin_predicts_is_not_too_fast():
     The same 60 degrees about another axis is far from the prediction too: too fast. A last step
     over the limit (a jump let through) predicts nothing, nor does an untrusted frame."""
     from intercap.geometry.symmetry import axis_angle_matrix
-    from intercap.stages.object.stage import spin_prediction, turned_too_fast
+    from intercap.stages.object.fitter import spin_prediction, turned_too_fast
 
     def about(axis, deg):
         return axis_angle_matrix(axis, np.radians(deg))

@@ -345,23 +345,21 @@ def body_regions(body_model_cfg) -> tuple[dict[str, np.ndarray], int]:
     return _REGIONS[key]
 
 
-def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
-    """The `contact` stage: writes OUT/contact.npy and OUT/contact/contact.npz."""
+def _write_no_contact(stage_dir: Path, out_dir: Path, T: int, frame_ids: np.ndarray) -> dict:
+    """The results of a session without an object: no contact in any frame."""
+    log.info("contact: the session has no object; no contact in any frame")
+    save_npz(stage_dir / "contact.npz", contact=np.zeros(T, bool), method=np.array("no object"), frame_ids=frame_ids,
+             region_names=np.array([], str), region_distance_m=np.zeros((T, 0)), region_contact=np.zeros((T, 0), bool),
+             invalid=np.zeros(T, bool))
+    save_npy(stage_dir / "contact.npy", np.zeros(T, bool))
+    publish(stage_dir / "contact.npy", out_dir / "contact.npy")
+    return {"method": "no object", "frames_in_contact": 0}
+
+
+def _checked_regions(cfg, session, per_frame) -> tuple[dict, list[str], list[int]]:
+    """(the body model's regions, their names, the columns of contact.regions); ContactError when a region is
+    unknown or the per-frame body is of another model."""
     ccfg = cfg.contact
-    out_dir = Path(out_dir)
-    stage_dir = out_dir / "contact"
-    T = session.num_frames
-    frame_ids = np.asarray(session.frame_ids)
-    if session.object is None:
-        log.info("contact: the session has no object; no contact in any frame")
-        save_npz(stage_dir / "contact.npz", contact=np.zeros(T, bool), method=np.array("no object"), frame_ids=frame_ids,
-                 region_names=np.array([], str), region_distance_m=np.zeros((T, 0)), region_contact=np.zeros((T, 0), bool),
-                 invalid=np.zeros(T, bool))
-        save_npy(stage_dir / "contact.npy", np.zeros(T, bool))
-        publish(stage_dir / "contact.npy", out_dir / "contact.npy")
-        return {"method": "no object", "frames_in_contact": 0}
-    method = resolve_method(ccfg, session)
-    per_frame = load_per_frame(out_dir, session)
     regions, num_vertices = body_regions(dataclasses.replace(cfg.body_model, name=session.body_model))
     names = list(regions)
     unknown = [r for r in ccfg.regions if r not in names]
@@ -371,6 +369,31 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         raise ContactError(f"contact: the per-frame body has {per_frame.vertices.shape[1]} vertices, the body model "
                            f"{session.body_model!r} {num_vertices}; rerun the `body` stage")
     columns = [names.index(r) for r in ccfg.regions]
+    return regions, names, columns
+
+
+def _gt_accuracy(figures: dict, session, sources: dict) -> None:
+    """With ground-truth contact (synthetic / annotated sessions): how good each source's labels are."""
+    gt = session.ground_truth()
+    if gt is not None and gt.contact is not None:
+        from intercap.evaluation.metrics import contact_scores
+
+        for name, labels in sources.items():
+            figures[f"gt_accuracy_{name}_pct"] = contact_scores(labels, gt.contact)[0]
+
+
+def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
+    """The `contact` stage: writes OUT/contact.npy and OUT/contact/contact.npz."""
+    ccfg = cfg.contact
+    out_dir = Path(out_dir)
+    stage_dir = out_dir / "contact"
+    T = session.num_frames
+    frame_ids = np.asarray(session.frame_ids)
+    if session.object is None:
+        return _write_no_contact(stage_dir, out_dir, T, frame_ids)
+    method = resolve_method(ccfg, session)
+    per_frame = load_per_frame(out_dir, session)
+    regions, names, columns = _checked_regions(cfg, session, per_frame)
     mesh = session.object.load_mesh()
 
     # 3D: distances of every region in every frame (also what the other sources' region labels use)
@@ -429,12 +452,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         "held_frames": int(held.sum()),
         "held_runs": [list(r) for r in held_runs],
     }
-    gt = session.ground_truth()
-    if gt is not None and gt.contact is not None:  # synthetic / annotated sessions: say how good each source is
-        from intercap.evaluation.metrics import contact_scores
-
-        for name, labels in (("2d", overlap_2d & judged_2d), ("3d", distance_3d & judged_3d), *extra.items()):
-            figures[f"gt_accuracy_{name}_pct"] = contact_scores(labels, gt.contact)[0]
+    _gt_accuracy(figures, session, {"2d": overlap_2d & judged_2d, "3d": distance_3d & judged_3d, **extra})
     return figures
 
 

@@ -112,6 +112,72 @@ def contact_vertices(body: np.ndarray, obj_posed: np.ndarray, obj_surface, R, t,
 
 
 # -- the dataset file -------------------------------------------------------------------------
+def _add_body(a: dict, session, res: dict, T: int, float16: bool) -> None:
+    """body_model and, with a body fit, body_valid, body_vertices, body_faces and body_param_*."""
+    params = res["body_params"] or {}
+    model = str(params.get("model", session.body_model)) if res["body_vertices"] is not None else ""
+    a["body_model"] = np.array(model)
+    if res["body_vertices"] is not None:
+        verts = np.asarray(res["body_vertices"])
+        a["body_valid"] = body_valid(verts, T)
+        a["body_vertices"] = verts.astype(np.float16 if float16 else np.float32)
+        a["body_faces"] = np.asarray(res["body_faces"], np.int32)
+        for k, v in params.items():
+            if k != "model":
+                a[f"body_param_{k}"] = v
+
+
+def _add_object(a: dict, session, res: dict, T: int) -> None:
+    """object_name and, with an object, its mesh and poses."""
+    obj = session.object
+    a["object_name"] = np.array(obj.name if obj is not None else "")
+    if obj is not None:
+        mesh = obj.load_mesh()
+        a["object_vertices"] = np.asarray(mesh.vertices, np.float64)
+        a["object_faces"] = np.asarray(mesh.faces, np.int32)
+    if res["object"] is not None:
+        a["object_R"] = np.asarray(res["object"]["R"], np.float64)
+        a["object_t"] = np.asarray(res["object"]["t"], np.float64)
+        a["object_valid"] = object_valid(res["object"], T)
+
+
+def _add_contact(a: dict, res: dict, T: int) -> None:
+    """contact and the contact stage's per-region labels, when it has run."""
+    if res["contact"] is not None:
+        a["contact"] = np.asarray(res["contact"], bool)
+    detail = res["contact_detail"]
+    if detail is not None:
+        a["contact_method"] = np.array(str(detail.get("method", "")))
+        a["contact_region_names"] = np.asarray(detail.get("region_names", np.array([], str)), str)
+        a["contact_regions"] = np.asarray(detail.get("region_contact", np.zeros((T, 0))), bool)
+        a["contact_region_distance_m"] = np.asarray(detail.get("region_distance_m", np.zeros((T, 0))), np.float64)
+        if "contact" not in a and "contact" in detail:
+            a["contact"] = np.asarray(detail["contact"], bool)
+
+
+def _add_cameras(a: dict, session) -> None:
+    """camera_names, camera_sizes, camera_K, camera_dist (zero-padded to 8) and camera_T_world_from_cam."""
+    cams = session.cameras
+    a["camera_names"] = np.array([c.name for c in cams])
+    a["camera_sizes"] = np.array([[c.width, c.height] for c in cams], np.int64).reshape(-1, 2)
+    a["camera_K"] = np.stack([np.asarray(c.K, np.float64) for c in cams])
+    dist = np.zeros((len(cams), 8))
+    for i, c in enumerate(cams):
+        dist[i, :len(c.dist)] = c.dist
+    a["camera_dist"] = dist
+    a["camera_T_world_from_cam"] = np.stack([np.asarray(c.T_world_from_cam, np.float64) for c in cams])
+
+
+def _add_ground(a: dict, session, res: dict) -> None:
+    """ground_point and ground_normal: OUT/prepare/ground.json, else session.yaml, else NaN."""
+    point, normal = np.full(3, np.nan), np.full(3, np.nan)
+    if res["ground"] is not None:
+        point, normal = np.asarray(res["ground"]["point"], float), np.asarray(res["ground"]["normal"], float)
+    elif session.ground is not None:
+        point, normal = (np.asarray(v, float) for v in session.ground)
+    a["ground_point"], a["ground_normal"] = point, normal
+
+
 def dataset_arrays(session, res: dict, float16: bool = False) -> dict[str, np.ndarray]:
     """Everything a downstream user needs, as named arrays (the keys of OUT/export/<session>.npz).
 
@@ -160,52 +226,11 @@ def dataset_arrays(session, res: dict, float16: bool = False) -> dict[str, np.nd
         "times_s": frame_ids / float(session.fps),
         "fps": np.array(float(session.fps)),
     }
-    params = res["body_params"] or {}
-    model = str(params.get("model", session.body_model)) if res["body_vertices"] is not None else ""
-    a["body_model"] = np.array(model)
-    if res["body_vertices"] is not None:
-        verts = np.asarray(res["body_vertices"])
-        a["body_valid"] = body_valid(verts, T)
-        a["body_vertices"] = verts.astype(np.float16 if float16 else np.float32)
-        a["body_faces"] = np.asarray(res["body_faces"], np.int32)
-        for k, v in params.items():
-            if k != "model":
-                a[f"body_param_{k}"] = v
-    obj = session.object
-    a["object_name"] = np.array(obj.name if obj is not None else "")
-    if obj is not None:
-        mesh = obj.load_mesh()
-        a["object_vertices"] = np.asarray(mesh.vertices, np.float64)
-        a["object_faces"] = np.asarray(mesh.faces, np.int32)
-    if res["object"] is not None:
-        a["object_R"] = np.asarray(res["object"]["R"], np.float64)
-        a["object_t"] = np.asarray(res["object"]["t"], np.float64)
-        a["object_valid"] = object_valid(res["object"], T)
-    if res["contact"] is not None:
-        a["contact"] = np.asarray(res["contact"], bool)
-    detail = res["contact_detail"]
-    if detail is not None:
-        a["contact_method"] = np.array(str(detail.get("method", "")))
-        a["contact_region_names"] = np.asarray(detail.get("region_names", np.array([], str)), str)
-        a["contact_regions"] = np.asarray(detail.get("region_contact", np.zeros((T, 0))), bool)
-        a["contact_region_distance_m"] = np.asarray(detail.get("region_distance_m", np.zeros((T, 0))), np.float64)
-        if "contact" not in a and "contact" in detail:
-            a["contact"] = np.asarray(detail["contact"], bool)
-    cams = session.cameras
-    a["camera_names"] = np.array([c.name for c in cams])
-    a["camera_sizes"] = np.array([[c.width, c.height] for c in cams], np.int64).reshape(-1, 2)
-    a["camera_K"] = np.stack([np.asarray(c.K, np.float64) for c in cams])
-    dist = np.zeros((len(cams), 8))
-    for i, c in enumerate(cams):
-        dist[i, :len(c.dist)] = c.dist
-    a["camera_dist"] = dist
-    a["camera_T_world_from_cam"] = np.stack([np.asarray(c.T_world_from_cam, np.float64) for c in cams])
-    point, normal = np.full(3, np.nan), np.full(3, np.nan)
-    if res["ground"] is not None:
-        point, normal = np.asarray(res["ground"]["point"], float), np.asarray(res["ground"]["normal"], float)
-    elif session.ground is not None:
-        point, normal = (np.asarray(v, float) for v in session.ground)
-    a["ground_point"], a["ground_normal"] = point, normal
+    _add_body(a, session, res, T, float16)
+    _add_object(a, session, res, T)
+    _add_contact(a, res, T)
+    _add_cameras(a, session)
+    _add_ground(a, session, res)
     for k, v in (res["physics"] or {}).items():
         a[f"physics_{k}"] = v
     return a
@@ -316,9 +341,9 @@ def write_behave(session, res: dict, out_dir: Path, frame_name: str = "world", p
 
 
 def _write_pickle(path: Path, data: dict) -> None:
-    from intercap.io.files import _atomic_target
+    from intercap.io.files import atomic_target
 
-    tmp = _atomic_target(path, ".pkl")
+    tmp = atomic_target(path, ".pkl")
     with open(tmp, "wb") as f:
         pickle.dump(data, f, protocol=4)
     tmp.replace(path)

@@ -8,16 +8,17 @@ from dataclasses import dataclass
 class PhysicsConfig:
     """Forces, torques and free flight from the 4D result (the `physics` stage)."""
 
-    mu: float = 0.5  # friction coefficient of the floor (sole and object contacts)
-    friction_edges: int = 4  # edges of the linearised friction cone (pyramid)
+    mu: float = 0.5  # friction coefficient of the floor (sole and object contacts), dimensionless
+    friction_edges: int = 4  # edges of the linearised friction cone (pyramid); more: closer to the cone, slower
     body_density_kg_m3: float = 1010.0  # body mass = rest mesh volume x this, unless session.yaml gives body.mass_kg
     sex: str = "auto"  # segment table: auto (blend by the fitted phenotype), male, female
-    filter: str = "adaptive"  # adaptive (Savitzky-Golay, window per trajectory), savgol, butterworth, none
-    filter_window_s: float = 0.3  # the `savgol` filter's window
-    filter_order: int = 3  # Savitzky-Golay polynomial order
-    cutoff_hz: float = 6.0  # Butterworth cut-off
-    foot_contact_m: float = 0.03  # a sole point this near the floor can push on it
-    object_ground_m: float = 0.02  # an object point this near the floor can push on it
-    object_weight: float = 10.0  # weight of the object's wrench equations against the body's
-    flight_min_frames: int = 8  # shortest free flight (object touching neither body nor floor)
-    flight_max_residual_m: float = 0.05  # and a parabola under gravity within this of its path (RMS)
+    # smoothing before differentiating: adaptive (Savitzky-Golay, window per trajectory), savgol, butterworth, none
+    filter: str = "adaptive"
+    filter_window_s: float = 0.3  # the `savgol` filter's window (s)
+    filter_order: int = 3  # Savitzky-Golay polynomial order (`adaptive` and `savgol`)
+    cutoff_hz: float = 6.0  # the `butterworth` filter's cut-off (Hz; 4th order, forwards and backwards)
+    foot_contact_m: float = 0.03  # a sole point this near (m) the floor can push on it
+    object_ground_m: float = 0.02  # an object point this near (m) the floor can push on it
+    object_weight: float = 10.0  # weight of the object's wrench equations against the body's (least squares)
+    flight_min_frames: int = 8  # shortest free flight (object touching neither body nor floor), frames
+    flight_max_residual_m: float = 0.05  # ... and a parabola under gravity within this (m, RMS) of its path

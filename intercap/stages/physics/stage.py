@@ -170,28 +170,19 @@ def body_landmarks(model, rest_vertices: np.ndarray) -> dict:
 
 
 # -- the analysis ------------------------------------------------------------------------------
-def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
-    """Forces, torques and flight of a finished results folder; writes OUT/physics/physics.npz and
-    returns the figures (metrics.json's `physics` entry). PhysicsError with a clear message when a
-    result, the floor or the body mass is missing."""
+def _td(a) -> torch.Tensor:
+    return torch.as_tensor(a, dtype=torch.float64)
+
+
+def load_body_params(out_dir: Path, model, T: int):
+    """(params with gaps filled and the mean shape, the mean shape, valid (T,)) of OUT/body_params.npz."""
     from intercap.body_models import BodyParams
     from intercap.body_models.base import PARAM_FIELDS
-    from intercap.config import Config
 
-    cfg = cfg or Config()
-    pc = cfg.physics
-    out_dir = Path(out_dir)
-    start = time.perf_counter()
-    point, up, ground_source = load_gravity(out_dir, session)
-    gravity = -G * up
-    T, fps = session.num_frames, float(session.fps)
-    frame_ids = np.asarray(session.frame_ids)
-
-    # body
     saved = dict(np.load(_require(out_dir / "body_params.npz", "global")))
-    model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model))
     if str(saved.get("model", model.name)) != model.name:
-        raise PhysicsError(f"{out_dir / 'body_params.npz'} holds a {saved['model']} fit, the session asks for {model.name}")
+        raise PhysicsError(f"{out_dir / 'body_params.npz'} holds a {saved['model']} fit, "
+                           f"the session asks for {model.name}")
     if len(saved["transl"]) != T:
         raise PhysicsError(f"{out_dir / 'body_params.npz'} has {len(saved['transl'])} frames, the session {T}")
     body_valid = saved["valid"].astype(bool) if "valid" in saved else np.ones(T, bool)
@@ -201,143 +192,220 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
     arrays = {k: kin.fill_gaps(saved[k], body_valid).astype(np.float64) for k in PARAM_FIELDS}
     shape = saved["shape_mean"] if "shape_mean" in saved else saved["shape"][body_valid].mean(0)
     arrays["shape"][:] = shape
-    params = BodyParams.from_numpy_dict(arrays, dtype=model.dtype)
+    return BodyParams.from_numpy_dict(arrays, dtype=model.dtype), shape, body_valid
 
+
+def rest_body(model, shape) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices (V, 3), bone poses (J, 4, 4)) of the body at rest with the given shape."""
     rest = model.init_params(1)
     rest.shape[:] = torch.as_tensor(shape, dtype=model.dtype)
     core = _anny_core(model)
     with torch.no_grad():
         rest_out = core(model._pose_matrices(rest), phenotype_kwargs=rest.shape, facial_actions=rest.expression)
-    rest_vertices = rest_out["vertices"][0].double().numpy()
-    rest_bones = rest_out["bone_poses"][0].double().numpy()
+    return rest_out["vertices"][0].double().numpy(), rest_out["bone_poses"][0].double().numpy()
+
+
+def body_mass(session, pc, model, rest_vertices: np.ndarray) -> tuple[float, str]:
+    """(mass kg, where it comes from): session.yaml's body.mass_kg, else the rest mesh's volume."""
     given = session_body_mass(session)
     if given is not None:
-        body_mass, body_source = given, "session.yaml body.mass_kg"
-    else:
-        try:
-            body_mass = mass_model.body_mass_from_volume(rest_vertices, model.faces.numpy(), pc.body_density_kg_m3)
-        except mass_model.MassError as exc:
-            raise PhysicsError(f"physics: {exc}; give `body: {{mass_kg: ...}}` in {session.root / 'session.yaml'}") from exc
-        body_source = f"rest mesh volume x {pc.body_density_kg_m3:g} kg/m^3"
+        return given, "session.yaml body.mass_kg"
+    try:
+        mass = mass_model.body_mass_from_volume(rest_vertices, model.faces.numpy(), pc.body_density_kg_m3)
+    except mass_model.MassError as exc:
+        raise PhysicsError(f"physics: {exc}; give `body: {{mass_kg: ...}}` in {session.root / 'session.yaml'}") from exc
+    return mass, f"rest mesh volume x {pc.body_density_kg_m3:g} kg/m^3"
+
+
+def female_share(pc, model, shape) -> float:
+    """physics.sex as de Leva's female share: 0, 1, or the body model's gender phenotype (auto)."""
     if pc.sex not in ("auto", "male", "female"):
         raise PhysicsError(f"physics.sex must be auto, male or female, got {pc.sex!r}")
-    labels = list(core.phenotype_labels)
-    female = {"male": 0.0, "female": 1.0}.get(pc.sex, float(shape[labels.index("gender")]) if "gender" in labels else 0.5)
-    ids = body_landmarks(model, rest_vertices)
-    rest_landmarks = {n: rest_vertices[i] for n, i in zip(ids["landmark_names"], ids["landmarks"])}
-    segments = mass_model.build_segments(list(model.joint_names), rest_bones[:, :3, 3], rest_bones[:, :3, :3],
-                                         rest_landmarks, body_mass, female, np.array([1.0, 0, 0]))
-    track = pose_body(model, params, ids, np.zeros(3) if point is None else point, up)
-    if point is None:  # the floor under the body's lowest vertex (5th percentile over the frames)
-        point = up * np.nanpercentile(track.lowest[body_valid], 5)
-        track.lowest -= point @ up
-    bone_index = {b: i for i, b in enumerate(model.joint_names)}
-    parents = np.asarray(core.bone_parents)
+    labels = list(_anny_core(model).phenotype_labels)
+    return {"male": 0.0, "female": 1.0}.get(pc.sex, float(shape[labels.index("gender")]) if "gender" in labels else 0.5)
 
-    # body kinematics and needs
-    filt = dict(method=pc.filter, window_s=pc.filter_window_s, order=pc.filter_order, cutoff_hz=pc.cutoff_hz)
+
+@dataclasses.dataclass
+class BodyNeeds:
+    """What the body's segments need (Newton-Euler), per frame."""
+
+    com: np.ndarray  # (T, S, 3) segment centres of mass
+    force: torch.Tensor  # (T, S, 3) F of each segment
+    torque: torch.Tensor  # (T, S, 3) N of each segment
+    joints: torch.Tensor  # (T, J, 3) bone heads
+    wrench: np.ndarray  # (T, 6) about the root
+
+
+def body_needs(segments, bone_index: dict, parents, track: BodyTrack, fps: float, filt: dict,
+               g_t: torch.Tensor) -> BodyNeeds:
+    """Segment kinematics, filtered and differentiated, and the Newton-Euler needs of each segment."""
     com = mass_model.segment_coms(segments, bone_index, track.heads, track.landmarks)  # (T, S, 3)
     _, _, com_acc = kin.derivatives(com, fps, **filt)
     Rf, omega, alpha = kin.quaternion_derivatives(track.rotations[:, segments.carrier], fps, **filt)
     Q = Rf @ segments.carrier_rest.transpose(0, 2, 1)[None]  # (T, S, 3, 3) rotation from rest
-    td = lambda a: torch.as_tensor(a, dtype=torch.float64)  # noqa: E731
-    g_t = td(gravity)
-    F = ne.newton_force(td(segments.mass), td(com_acc), g_t)
-    N = ne.euler_torque(ne.rotate_inertia(td(segments.inertia_rest), td(Q)), td(omega), td(alpha))
-    joints = td(track.heads)
-    f0, t0 = ne.joint_wrenches(parents, segments.carrier, F, N, td(com), joints)
-    body_wrench = torch.cat([f0[:, 0], t0[:, 0]], -1).numpy()  # (T, 6) about the root
-    root = track.heads[:, 0]
+    F = ne.newton_force(_td(segments.mass), _td(com_acc), g_t)
+    N = ne.euler_torque(ne.rotate_inertia(_td(segments.inertia_rest), _td(Q)), _td(omega), _td(alpha))
+    joints = _td(track.heads)
+    f0, t0 = ne.joint_wrenches(parents, segments.carrier, F, N, _td(com), joints)
+    return BodyNeeds(com, F, N, joints, torch.cat([f0[:, 0], t0[:, 0]], -1).numpy())
 
-    # object
+
+@dataclasses.dataclass
+class ObjectTrack:
+    """The object per frame (world) and, where its mass is known, the wrench it needs."""
+
+    present: bool  # the session has an object and OUT/object_poses.npz exists
+    mass: float = float("nan")
+    mass_source: str = "no object"
+    valid: np.ndarray = None  # (T,) bool
+    centres: np.ndarray = None  # (T, 3) centre of mass, NaN where not tracked
+    on_ground: np.ndarray = None  # (T,) bool
+    wrench: np.ndarray | None = None  # (T, 6)
+    com_filled: np.ndarray | None = None  # (T, 3) centres with gaps filled
+    points: np.ndarray | None = None  # (T, Q, 3) subsampled surface points
+    ground_active: np.ndarray | None = None  # (T, Q) bool: point on the floor
+    hand_active: np.ndarray | None = None  # (T, 2) bool
+
+
+def track_object(out_dir: Path, session, T: int, point, up, pc, fps: float, filt: dict,
+                 g_t: torch.Tensor) -> ObjectTrack:
+    """The object's poses, mass, floor contacts and needs (an empty track without an object)."""
     obj_info = session.object
-    has_object = obj_info is not None and (out_dir / "object_poses.npz").exists()
-    object_mass, object_source = float("nan"), "no object"
-    obj_wrench = obj_com_w = obj_points = obj_active = hand_active = None
-    obj_valid = np.zeros(T, bool)
-    centres = np.full((T, 3), np.nan)
-    obj_on_ground = np.zeros(T, bool)
-    if obj_info is not None and not has_object:
+    track = ObjectTrack(obj_info is not None and (out_dir / "object_poses.npz").exists(), valid=np.zeros(T, bool),
+                        centres=np.full((T, 3), np.nan), on_ground=np.zeros(T, bool))
+    if obj_info is not None and not track.present:
         raise PhysicsError(f"physics: {out_dir / 'object_poses.npz'} is missing; run the `global` stage first")
-    if has_object:
-        with np.load(out_dir / "object_poses.npz") as z:
-            R_obj, t_obj = z["R"].astype(np.float64), z["t"].astype(np.float64)
-            obj_valid = z["valid"].astype(bool) if "valid" in z else np.ones(T, bool)
-        obj_valid &= np.isfinite(R_obj).all((1, 2)) & np.isfinite(t_obj).all(1)
-        mesh = obj_info.load_mesh()
-        object_mass, object_source = mass_model.object_mass(obj_info.mass_kg, getattr(obj_info, "density_kg_m3", None),
-                                                            mesh.vertices, mesh.faces)
-        com_local, inertia_local = mass_model.object_inertia(mesh.vertices, mesh.faces,
-                                                             object_mass if np.isfinite(object_mass) else 1.0)
-        centres = np.einsum("tij,j->ti", R_obj, com_local) + t_obj
-        centres[~obj_valid] = np.nan
-        from intercap.body_models.regions import farthest_point_subsample
+    if not track.present:
+        return track
+    with np.load(out_dir / "object_poses.npz") as z:
+        R_obj, t_obj = z["R"].astype(np.float64), z["t"].astype(np.float64)
+        obj_valid = z["valid"].astype(bool) if "valid" in z else np.ones(T, bool)
+    obj_valid &= np.isfinite(R_obj).all((1, 2)) & np.isfinite(t_obj).all(1)
+    track.valid = obj_valid
+    mesh = obj_info.load_mesh()
+    track.mass, track.mass_source = mass_model.object_mass(obj_info.mass_kg, getattr(obj_info, "density_kg_m3", None),
+                                                           mesh.vertices, mesh.faces)
+    com_local, inertia_local = mass_model.object_inertia(mesh.vertices, mesh.faces,
+                                                         track.mass if np.isfinite(track.mass) else 1.0)
+    centres = np.einsum("tij,j->ti", R_obj, com_local) + t_obj
+    centres[~obj_valid] = np.nan
+    track.centres = centres
+    from intercap.body_models.regions import farthest_point_subsample
 
-        sub = np.asarray(mesh.vertices)[farthest_point_subsample(np.asarray(mesh.vertices), OBJECT_POINTS)]
-        obj_points = np.einsum("tij,kj->tki", R_obj, sub) + t_obj[:, None]  # (T, Q, 3)
-        heights = (obj_points - point) @ up
-        obj_active = np.nan_to_num(heights, nan=np.inf) < pc.object_ground_m
-        obj_on_ground = obj_active.any(1)
-        hand_active = hand_contacts(out_dir, T) & obj_valid[:, None]
-        if np.isfinite(object_mass) and obj_valid.any():
-            Ro, w_o, al_o = kin.quaternion_derivatives(kin.fill_gaps(R_obj, obj_valid), fps, **filt)
-            _, _, acc_o = kin.derivatives(kin.fill_gaps(centres, obj_valid), fps, **filt)
-            Fo, No = ne.rigid_body_wrench(object_mass, td(Ro @ inertia_local @ Ro.transpose(0, 2, 1)), td(acc_o),
-                                          td(w_o), td(al_o), g_t)
-            obj_wrench = torch.cat([Fo, No], -1).numpy()
-            obj_wrench[~obj_valid] = np.nan
-            obj_com_w = kin.fill_gaps(centres, obj_valid)
-        elif not obj_valid.any():
-            log.warning("physics: the object was tracked in no frame; hand and object forces are skipped")
-        else:
-            log.warning("physics: object mass %s; hand and object forces are skipped", object_source)
+    sub = np.asarray(mesh.vertices)[farthest_point_subsample(np.asarray(mesh.vertices), OBJECT_POINTS)]
+    track.points = np.einsum("tij,kj->tki", R_obj, sub) + t_obj[:, None]  # (T, Q, 3)
+    heights = (track.points - point) @ up
+    track.ground_active = np.nan_to_num(heights, nan=np.inf) < pc.object_ground_m
+    track.on_ground = track.ground_active.any(1)
+    track.hand_active = hand_contacts(out_dir, T) & obj_valid[:, None]
+    if np.isfinite(track.mass) and obj_valid.any():
+        Ro, w_o, al_o = kin.quaternion_derivatives(kin.fill_gaps(R_obj, obj_valid), fps, **filt)
+        _, _, acc_o = kin.derivatives(kin.fill_gaps(centres, obj_valid), fps, **filt)
+        Fo, No = ne.rigid_body_wrench(track.mass, _td(Ro @ inertia_local @ Ro.transpose(0, 2, 1)), _td(acc_o),
+                                      _td(w_o), _td(al_o), g_t)
+        track.wrench = torch.cat([Fo, No], -1).numpy()
+        track.wrench[~obj_valid] = np.nan
+        track.com_filled = kin.fill_gaps(centres, obj_valid)
+    elif not obj_valid.any():
+        log.warning("physics: the object was tracked in no frame; hand and object forces are skipped")
+    else:
+        log.warning("physics: object mass %s; hand and object forces are skipped", track.mass_source)
+    return track
 
-    # contacts
-    soles = track.soles  # (T, 2, P, 3)
-    foot_active = ((soles - point) @ up) < pc.foot_contact_m
-    body_wrench[~body_valid] = np.nan
-    sol = cf.solve_contacts(body_wrench, root, soles, foot_active, up, pc.mu, obj_wrench, obj_com_w,
-                            track.hands, hand_active if obj_wrench is not None else None, obj_points, obj_active,
-                            edges=pc.friction_edges, object_weight=pc.object_weight)
-    foot_force = sol.foot_point_force.sum(2)  # (T, 2, 3)
-    fn = sol.foot_point_force @ up  # (T, 2, P)
+
+def centre_of_pressure(foot_point_force: np.ndarray, soles: np.ndarray, point, up) -> np.ndarray:
+    """(T, 2, 3) each foot's centre of pressure on the floor; NaN where the foot carries nothing."""
+    fn = foot_point_force @ up  # (T, 2, P)
     with np.errstate(invalid="ignore", divide="ignore"):
         cop = np.einsum("tfp,tfpi->tfi", fn, soles) / fn.sum(2)[..., None]
     cop[fn.sum(2) < 1e-6] = np.nan
-    cop = cop - ((cop - point) @ up)[..., None] * up  # on the floor
+    return cop - ((cop - point) @ up)[..., None] * up  # on the floor
 
-    # joint torques with the solved contacts: soles on the foot bones, hand reactions on the wrists
-    P = soles.shape[2]
+
+def joint_torques(sol, segments, parents, bone_index: dict, needs: BodyNeeds, soles, hands) -> np.ndarray:
+    """(T, J, 3) joint torques with the solved contacts: soles on the foot bones, hand reactions on the wrists."""
+    T, P = soles.shape[0], soles.shape[2]
     ext_bone = [bone_index["foot.L"]] * P + [bone_index["foot.R"]] * P + [bone_index["wrist.L"], bone_index["wrist.R"]]
     hand_f = np.nan_to_num(sol.hand_force)
     hand_t = np.nan_to_num(sol.hand_torque)
     ext_f = np.concatenate([np.nan_to_num(sol.foot_point_force).reshape(T, 2 * P, 3), -hand_f], 1)
     ext_t = np.concatenate([np.zeros((T, 2 * P, 3)), -hand_t], 1)
-    ext_p = np.concatenate([soles.reshape(T, 2 * P, 3), track.hands], 1)
-    _, joint_torque = ne.joint_wrenches(parents, segments.carrier, F, N, td(com), joints, ext_bone, td(ext_f),
-                                        td(ext_t), td(ext_p))
-    joint_torque = joint_torque.numpy()
-    valid = body_valid & np.isfinite(sol.body_residual).all(1)
-    joint_torque[~valid] = np.nan
+    ext_p = np.concatenate([soles.reshape(T, 2 * P, 3), hands], 1)
+    _, joint_torque = ne.joint_wrenches(parents, segments.carrier, needs.force, needs.torque, _td(needs.com),
+                                        needs.joints, ext_bone, _td(ext_f), _td(ext_t), _td(ext_p))
+    return joint_torque.numpy()
 
-    object_known = obj_wrench is not None
-    hand_force = np.where(object_known, sol.hand_force, np.nan)
-    hand_torque = np.where(object_known, sol.hand_torque, np.nan)
-    object_ground = sol.object_ground_force.sum(1) if object_known else np.full((T, 3), np.nan)
 
-    # free flight
-    flight = flight_analysis(centres, contact_labels(out_dir, T) | obj_on_ground, up, fps, pc.flight_min_frames,
-                             pc.flight_max_residual_m) \
-        if has_object else no_flight()
-
-    arm = track.hands - root[:, None]  # the feet carry the body's needs plus what the hands push on the object
+def feet_load(sol, body_wrench: np.ndarray, hands: np.ndarray, root: np.ndarray) -> np.ndarray:
+    """(T, 6) what the feet carry about the root: the body's needs plus what the hands push on the object."""
+    hand_f = np.nan_to_num(sol.hand_force)
+    hand_t = np.nan_to_num(sol.hand_torque)
+    arm = hands - root[:, None]
     feet_need = body_wrench.copy()
     feet_need[:, :3] += hand_f.sum(1)
     feet_need[:, 3:] += (np.cross(arm, hand_f) + hand_t).sum(1)
-    per_frame = plausibility_arrays(feet_need, root, soles, foot_active, up, pc, fps, track.lowest, point,
-                                    obj_points, obj_valid)
-    arrays = dict(frame_ids=frame_ids, gravity=gravity, body_mass_kg=np.float64(body_mass),
-                  object_mass_kg=np.float64(object_mass), hand_force=hand_force, hand_torque=hand_torque,
+    return feet_need
+
+
+def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
+    """Forces, torques and flight of a finished results folder; writes OUT/physics/physics.npz and
+    returns the figures (metrics.json's `physics` entry). PhysicsError with a clear message when a
+    result, the floor or the body mass is missing."""
+    from intercap.config import Config
+
+    cfg = cfg or Config()
+    pc = cfg.physics
+    out_dir = Path(out_dir)
+    start = time.perf_counter()
+    point, up, ground_source = load_gravity(out_dir, session)
+    gravity = -G * up
+    T, fps = session.num_frames, float(session.fps)
+
+    model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model))
+    params, shape, body_valid = load_body_params(out_dir, model, T)
+    rest_vertices, rest_bones = rest_body(model, shape)
+    mass, body_source = body_mass(session, pc, model, rest_vertices)
+    female = female_share(pc, model, shape)
+    ids = body_landmarks(model, rest_vertices)
+    rest_landmarks = {n: rest_vertices[i] for n, i in zip(ids["landmark_names"], ids["landmarks"])}
+    segments = mass_model.build_segments(list(model.joint_names), rest_bones[:, :3, 3], rest_bones[:, :3, :3],
+                                         rest_landmarks, mass, female, np.array([1.0, 0, 0]))
+    track = pose_body(model, params, ids, np.zeros(3) if point is None else point, up)
+    if point is None:  # the floor under the body's lowest vertex (5th percentile over the frames)
+        point = up * np.nanpercentile(track.lowest[body_valid], 5)
+        track.lowest -= point @ up
+    bone_index = {b: i for i, b in enumerate(model.joint_names)}
+    parents = np.asarray(_anny_core(model).bone_parents)
+
+    filt = dict(method=pc.filter, window_s=pc.filter_window_s, order=pc.filter_order, cutoff_hz=pc.cutoff_hz)
+    g_t = _td(gravity)
+    needs = body_needs(segments, bone_index, parents, track, fps, filt, g_t)
+    root = track.heads[:, 0]
+    obj = track_object(out_dir, session, T, point, up, pc, fps, filt, g_t)
+
+    soles = track.soles  # (T, 2, P, 3)
+    foot_active = ((soles - point) @ up) < pc.foot_contact_m
+    needs.wrench[~body_valid] = np.nan
+    sol = cf.solve_contacts(needs.wrench, root, soles, foot_active, up, pc.mu, obj.wrench, obj.com_filled,
+                            track.hands, obj.hand_active if obj.wrench is not None else None, obj.points,
+                            obj.ground_active, edges=pc.friction_edges, object_weight=pc.object_weight)
+    foot_force = sol.foot_point_force.sum(2)  # (T, 2, 3)
+    cop = centre_of_pressure(sol.foot_point_force, soles, point, up)
+    joint_torque = joint_torques(sol, segments, parents, bone_index, needs, soles, track.hands)
+    valid = body_valid & np.isfinite(sol.body_residual).all(1)
+    joint_torque[~valid] = np.nan
+
+    object_known = obj.wrench is not None
+    hand_force = np.where(object_known, sol.hand_force, np.nan)
+    hand_torque = np.where(object_known, sol.hand_torque, np.nan)
+    object_ground = sol.object_ground_force.sum(1) if object_known else np.full((T, 3), np.nan)
+    flight = flight_analysis(obj.centres, contact_labels(out_dir, T) | obj.on_ground, up, fps, pc.flight_min_frames,
+                             pc.flight_max_residual_m) \
+        if obj.present else no_flight()
+    per_frame = plausibility_arrays(feet_load(sol, needs.wrench, track.hands, root), root, soles, foot_active, up,
+                                    pc, fps, track.lowest, point, obj.points, obj.valid)
+    arrays = dict(frame_ids=np.asarray(session.frame_ids), gravity=gravity, body_mass_kg=np.float64(mass),
+                  object_mass_kg=np.float64(obj.mass), hand_force=hand_force, hand_torque=hand_torque,
                   hand_point=track.hands, foot_force=foot_force, foot_cop=cop, object_ground_force=object_ground,
                   joint_torque=joint_torque, joint_names=np.array(model.joint_names),
                   residual_force=sol.body_residual[:, :3], residual_torque=sol.body_residual[:, 3:],
@@ -345,24 +413,32 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
                   valid=valid, flight_episodes=flight["episodes"], flight_acceleration=flight["acceleration"],
                   flight_gravity_angle_deg=flight["gravity_angle_deg"], flight_runs_held=flight["held"],
                   foot_contact=foot_active, foot_points=soles,
-                  hand_contact=np.zeros((T, 2), bool) if hand_active is None else hand_active,
+                  hand_contact=np.zeros((T, 2), bool) if obj.hand_active is None else obj.hand_active,
                   mu=np.float64(pc.mu), body_mass_source=np.array(body_source),
-                  object_mass_source=np.array(object_source), **per_frame)
+                  object_mass_source=np.array(obj.mass_source), **per_frame)
     save_npz(out_dir / "physics" / "physics.npz", **arrays)
+    figures = physics_figures(arrays, mass, body_source, obj, ground_source)
+    figures["physics_seconds_per_frame"] = (time.perf_counter() - start) / max(T, 1)
+    return figures
+
+
+def physics_figures(arrays: dict, mass: float, body_source: str, obj: ObjectTrack, ground_source: str) -> dict:
+    """metrics.json's `physics` entry from physics.npz's arrays (without the timing)."""
+    object_known = obj.wrench is not None
+    valid, foot_force, hand_force = arrays["valid"], arrays["foot_force"], arrays["hand_force"]
     figures = plausibility.summarise(arrays)
     figures.update({
-        "body_mass_kg": body_mass, "body_mass_source": body_source,
-        "object_mass_kg": None if not np.isfinite(object_mass) else object_mass, "object_mass_source": object_source,
-        "object_forces": ("solved" if object_known else "no object" if not has_object
-                          else "skipped: object tracked in no frame" if not obj_valid.any()
-                          else f"skipped: object mass {object_source}"),
+        "body_mass_kg": mass, "body_mass_source": body_source,
+        "object_mass_kg": None if not np.isfinite(obj.mass) else obj.mass, "object_mass_source": obj.mass_source,
+        "object_forces": ("solved" if object_known else "no object" if not obj.present
+                          else "skipped: object tracked in no frame" if not obj.valid.any()
+                          else f"skipped: object mass {obj.mass_source}"),
         "ground_source": ground_source, "frames_valid": int(valid.sum()),
     })
     if valid.any():
         figures["ground_reaction_mean_n"] = float(np.linalg.norm(foot_force[valid].sum(1), axis=-1).mean())
         if object_known:
             figures["hand_force_sum_mean_n"] = float(np.linalg.norm(np.nansum(hand_force[valid], 1), axis=-1).mean())
-    figures["physics_seconds_per_frame"] = (time.perf_counter() - start) / max(T, 1)
     return figures
 
 

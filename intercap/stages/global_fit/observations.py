@@ -1,0 +1,386 @@
+"""What the data gives the joint fit: the per-frame stages' results (gaps filled), the contact stage's
+labels, the object's shape (a signed-distance grid of its mesh), free-flight episodes, and each
+window's observations (keypoints and person points as the body stage reads them, object points
+from the object's pixels with depth).
+"""
+from __future__ import annotations
+
+import copy
+import hashlib
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from intercap.body_models import BodyParams
+from intercap.body_models.base import PARAM_FIELDS, axis_angle_to_matrix, matrix_to_axis_angle
+from intercap.geometry.cameras import Cameras
+from intercap.geometry.symmetry import mesh_symmetry, unwrap_symmetry
+from intercap.io.files import per_frame_result, save_npz
+from intercap.session.session import in_threads
+from intercap.stages.body.observations import BodyObservations, KeypointSource, PersonPoints
+
+log = logging.getLogger(__name__)
+
+HANDS = ("left_hand", "right_hand")
+
+
+class GlobalError(ValueError):
+    """The joint fit cannot run: a per-frame result is missing or empty, or a setting is out of range."""
+
+
+def fill_gaps(values: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(T, ...) values with invalid frames replaced by linear interpolation in time between the
+    nearest valid frames (held at the ends). Axis-angle and translations vary slowly enough over a
+    short gap for this to be only a starting point; the optimisation does the rest."""
+    values = np.array(values, dtype=np.float64)
+    if valid.all() or not valid.any():
+        return values
+    t = np.arange(len(values))
+    flat = values.reshape(len(values), -1)
+    for k in range(flat.shape[1]):
+        flat[~valid, k] = np.interp(t[~valid], t[valid], flat[valid, k])
+    return flat.reshape(values.shape)
+
+
+@dataclass
+class PerFrameResults:
+    """What the per-frame stages left, gaps filled; T frames."""
+
+    body: BodyParams  # (T, ...), shape already the sequence mean
+    body_valid: np.ndarray  # (T,) bool
+    R: np.ndarray  # (T, 3, 3) object -> world
+    t: np.ndarray  # (T, 3)
+    object_valid: np.ndarray  # (T,) bool
+    object_confidence: np.ndarray  # (T,) in [0, 1], 0 where not trusted
+    contact: np.ndarray  # (T,) bool
+    hand_distance: np.ndarray | None  # (T, 2) metres from the left, right hand to the object (None: not measured yet)
+    grasping: np.ndarray | None = None  # (T, 2) bool: the hand holds the object (a contact frame, hand within reach)
+
+
+
+def load_per_frame(session, out_dir: Path, model) -> PerFrameResults:
+    """Read OUT/body/, OUT/object/ and the contact stage's labels; clear errors when missing."""
+    body_file = per_frame_result(out_dir, "body", "body_params.npz")
+    object_file = per_frame_result(out_dir, "object", "object_poses.npz")
+    for path, stage in ((body_file, "body"), (object_file, "object")):
+        if not path.exists():
+            raise GlobalError(f"{path} is missing: run the `{stage}` stage first "
+                              f"(intercap run SESSION --out {out_dir} --stages {stage})")
+    saved = np.load(body_file)
+    if str(saved["model"]) != model.name:
+        raise GlobalError(f"{body_file} holds a {saved['model']} fit but the session asks for {model.name}")
+    body_valid = saved["valid"].astype(bool)
+    if not body_valid.any():
+        raise GlobalError(f"{body_file}: no frame has a body fit; nothing to refine")
+    arrays = {k: fill_gaps(saved[k], body_valid).astype(np.float32) for k in PARAM_FIELDS}
+    arrays["shape"][:] = saved["shape_mean"]
+    body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
+
+    poses = np.load(object_file)
+    object_valid = poses["valid"].astype(bool)
+    inside = out_dir / "global" / "object_inside_body.npy"  # `object_inside_body`'s, written by `run`
+    if inside.exists():
+        object_valid &= ~np.load(inside)
+    if not object_valid.any():
+        raise GlobalError(f"{object_file}: the object was tracked in no frame; nothing to refine")
+    R, t = unwrap_symmetry(poses["R"], poses["t"], object_valid, *mesh_symmetry(session.object.load_mesh()))
+    rotvec = fill_gaps(_rotvecs(R, object_valid), object_valid)
+    R = axis_angle_to_matrix(torch.from_numpy(rotvec)).numpy()
+    t = fill_gaps(t, object_valid)
+    confidence = np.where(object_valid, np.nan_to_num(poses["confidence"]), 0.0)
+
+    contact, hand_distance = load_contact_labels(out_dir, session.num_frames)
+    return PerFrameResults(body, body_valid, R, t, object_valid, confidence, contact, hand_distance)
+
+
+
+def hand_object_distance(model, per_frame: PerFrameResults, shape: "ObjectShape") -> np.ndarray:
+    """(T, 2) metres from each hand's contact region to the object's surface in the per-frame results."""
+    ids = [torch.as_tensor(model.contact_regions[h]) for h in HANDS]
+    distance = np.zeros((len(per_frame.contact), 2))
+    R = torch.as_tensor(per_frame.R, dtype=torch.float32, device=model.faces.device)
+    t = torch.as_tensor(per_frame.t, dtype=torch.float32, device=model.faces.device)
+    with torch.no_grad():
+        for s in range(0, len(distance), 32):
+            sl = slice(s, s + 32)
+            vertices = model.sparse_forward(per_frame.body[sl], torch.cat(ids)).vertices
+            sd = shape.signed_distance((vertices - t[sl, None]) @ R[sl])
+            distance[sl, 0] = sd[:, :len(ids[0])].min(1).values.cpu().numpy()
+            distance[sl, 1] = sd[:, len(ids[0]):].min(1).values.cpu().numpy()
+    return distance
+
+
+
+def _rotvecs(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(T, 3) axis-angle of the valid rotations, made continuous in time (no 2 pi jumps), NaN elsewhere."""
+    out = np.full((len(R), 3), np.nan)
+    out[valid] = matrix_to_axis_angle(torch.from_numpy(R[valid]).double()).numpy()
+    previous = None
+    for i in np.flatnonzero(valid):  # choose the equivalent axis-angle nearest the previous one
+        if previous is not None:
+            angle = np.linalg.norm(out[i])
+            if angle > 1e-6:
+                alt = out[i] * (1 - 2 * np.pi / angle)
+                if np.linalg.norm(alt - previous) < np.linalg.norm(out[i] - previous):
+                    out[i] = alt
+        previous = out[i]
+    return out
+
+
+
+def load_contact_labels(out_dir: Path, T: int) -> tuple[np.ndarray, np.ndarray | None]:
+    """Contact per frame (T,) and each hand's per-frame distance to the object (T, 2) metres, from the
+    `contact` stage; the distances are None where only OUT/contact.npy exists (measured here then)."""
+    from intercap.stages.contact.stage import load_contact
+
+    if (Path(out_dir) / "contact" / "contact.npz").exists():
+        data = load_contact(out_dir)
+        names = data["region_names"]
+        if all(h in names for h in HANDS) and "region_distance_m" in data:
+            distance = np.stack([data["region_distance_m"][:, names.index(h)] for h in HANDS], 1)
+            return data["contact"].astype(bool), np.nan_to_num(distance, nan=np.inf)
+        return data["contact"].astype(bool), None
+    labels = Path(out_dir) / "contact.npy"
+    if labels.exists():
+        return np.load(labels).astype(bool), None
+    log.warning("global: no contact labels (run the `contact` stage); contact terms are off")
+    return np.zeros(T, bool), np.full((T, 2), np.inf)
+
+
+
+def signed_distance_grid(vertices: np.ndarray, faces: np.ndarray, watertight: bool, resolution: int,
+                         cell_m: float | None, margin_m: float | None, cells_max: int) -> dict:
+    """`ObjectShape`'s grid: `sdf` (Z, Y, X) metres at the corners of cells from `lo` to `hi`."""
+    import open3d as o3d
+
+    lo, hi = vertices.min(0), vertices.max(0)
+    margin = 0.2 * float((hi - lo).max()) + 0.05
+    margin = min(margin, margin_m) if margin_m else margin
+    lo, hi = lo - margin, hi + margin
+    cell = float((hi - lo).max()) / resolution
+    if cell_m:
+        cell = max(min(cell, cell_m), (float(np.prod(hi - lo)) / cells_max) ** (1 / 3))
+    counts = np.ceil((hi - lo) / cell).astype(int) + 1
+    axes = [lo[k] + cell * np.arange(counts[k]) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).astype(np.float32)  # (X, Y, Z, 3)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(vertices), o3d.core.Tensor(faces))
+    if watertight:
+        sdf = scene.compute_signed_distance(grid.reshape(-1, 3)).numpy()
+    else:  # no inside to speak of: distances only, so nothing is pushed out of an open shell
+        sdf = scene.compute_distance(grid.reshape(-1, 3)).numpy()
+    # grid_sample wants (N, C, D, H, W) with x indexing W: store as (Z, Y, X).
+    return {"sdf": np.ascontiguousarray(sdf.reshape(grid.shape[:3]).transpose(2, 1, 0)),
+            "lo": lo, "hi": (lo + cell * (counts - 1)).astype(np.float32)}
+
+
+
+class ObjectShape:
+    """The rigid object in its own coordinates: a signed-distance grid (trilinear, differentiable in
+    the query points), surface samples for E_A / E_G, and its graspable points for E_C'."""
+
+    def __init__(self, mesh: trimesh.Trimesh, resolution: int, grasp_ids: np.ndarray | None, samples: int = 256,
+                 seed: int = 0, cell_m: float | None = None, margin_m: float | None = None,
+                 cells_max: int = 4_000_000, cache: Path | None = None):
+        """`resolution` cells at least along the grid's longest side, none wider than `cell_m` (thin
+        parts, a chair's back panel, read as hardly inside in cells as wide as they are), unless that
+        takes more than `cells_max` cells; the grid reaches 0.2 of the object's size plus 5 cm, at
+        most `margin_m`, beyond its box (further out: the border value plus the distance to the grid,
+        an overestimate). With `cache` (an .npz) the grid is read from there when it was built for
+        the same mesh and settings, else built and written there: every worker of the stage needs it,
+        and a large object's grid takes a while to build."""
+        vertices = np.asarray(mesh.vertices, dtype=np.float32)
+        faces = np.asarray(mesh.faces, dtype=np.uint32)
+        if not mesh.is_watertight:
+            log.warning("global: the object mesh is not watertight; interpenetration is not measured")
+        settings = np.array([resolution, cell_m or 0, margin_m or 0, cells_max], np.float64)
+        key = hashlib.sha1(vertices.tobytes() + faces.tobytes() + settings.tobytes()).hexdigest()
+        grid = None
+        if cache is not None and Path(cache).exists():
+            with np.load(cache) as saved:
+                if str(saved["key"]) == key:
+                    grid = {name: saved[name] for name in ("sdf", "lo", "hi")}
+        if grid is None:
+            grid = signed_distance_grid(vertices, faces, mesh.is_watertight, resolution, cell_m, margin_m, cells_max)
+            if cache is not None:
+                save_npz(cache, key=np.array(key), **grid)
+        self.sdf = torch.from_numpy(grid["sdf"])[None, None]
+        self.lo, self.hi = torch.from_numpy(grid["lo"]), torch.from_numpy(grid["hi"])
+        points, _ = trimesh.sample.sample_surface_even(mesh, samples, seed=seed)
+        self.samples = torch.as_tensor(np.asarray(points), dtype=torch.float32)  # (M, 3)
+        ids = np.arange(len(vertices)) if grasp_ids is None or len(grasp_ids) == 0 else np.asarray(grasp_ids)
+        self.grasp_points = torch.from_numpy(vertices[ids])  # (G, 3)
+        self.centroid = torch.from_numpy(vertices.mean(0))
+
+    def on(self, device) -> "ObjectShape":
+        """A copy with its tensors on `device` (the fitter's: it then copies nothing per evaluation)."""
+        moved = copy.copy(self)
+        for name in ("sdf", "lo", "hi", "samples", "grasp_points", "centroid"):
+            setattr(moved, name, getattr(self, name).to(device))
+        return moved
+
+    def signed_distance(self, points: torch.Tensor) -> torch.Tensor:
+        """(..., 3) points in object coordinates -> (...) metres, positive outside. Beyond the grid:
+        the border value plus the distance to the grid box (an overestimate that keeps its sign)."""
+        lo, hi = self.lo.to(points), self.hi.to(points)
+        inside = torch.minimum(torch.maximum(points, lo), hi)
+        outside = (points - inside).norm(dim=-1)
+        normalised = (inside - lo) / (hi - lo) * 2 - 1
+        flat = normalised.reshape(1, -1, 1, 1, 3)
+        value = torch.nn.functional.grid_sample(self.sdf.to(points), flat, mode="bilinear", align_corners=True)
+        return value.reshape(points.shape[:-1]) + outside
+
+
+@dataclass
+class WindowData:
+    """The observations of one window's W frames."""
+
+    obs: BodyObservations
+    object_points: torch.Tensor | None  # (W, P, 3) world
+    object_point_valid: torch.Tensor | None  # (W, P)
+    object_reference: torch.Tensor  # (W, M, 3) the object's samples where the tracker put them
+    object_confidence: torch.Tensor  # (W,)
+    grasping: torch.Tensor  # (W, 2) float
+    flight: torch.Tensor | None = None  # (W,) long: free-flight episode id per frame, -1 outside (GraviCap);
+    # None when no frame of the window is in flight
+    grasp_rows: tuple | None = None  # per hand, (G,) long: the frames where it grasps, found on the host
+    # when the window is read (E_C' measures only them); None: every frame, weighted by `grasping`
+
+
+class Observations:
+    """Loads what a window needs: keypoints and person points as the body stage does, object points
+    from the object masks (given or derived around the tracked pose) with depth."""
+
+    def __init__(self, session, cfg, out_dir: Path, cameras: Cameras):
+        from intercap.stages.object.fitter import ObjectTracker
+
+        self.session, self.cfg = session, cfg
+        self.device = cameras.K.device  # where the window's tensors go (the fit's device)
+        self.keypoints = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
+                                        cfg.body.keypoint_view_check_px)
+        self.person = PersonPoints(session, cameras, cfg.body, out_dir)
+        self.tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
+
+    def object_points(self, frame_id: int, R: np.ndarray, t: np.ndarray, trusted: bool, seed: int,
+                      depths: list | None = None) -> np.ndarray:
+        """(P, 3) world points of the object's pixels, a seeded subset; none where the tracker lost it.
+        `depths`: the frame's depth maps when already read."""
+        P = self.cfg.global_.object_points_per_view * self.session.num_cameras
+        if not trusted:
+            return np.zeros((0, 3))
+        points = self.tracker.object_points(self.tracker.observe(frame_id, (R, t), depths=depths))
+        if len(points) > P:
+            points = points[np.random.default_rng([seed, frame_id]).choice(len(points), P, replace=False)]
+        return points
+
+    def window(self, frames: np.ndarray, per_frame: PerFrameResults, shape: ObjectShape) -> WindowData:
+        """The observations of take frames `frames` (W,), on the fit's device."""
+        ids = self.session.frame_ids[frames]
+        kps = self.keypoints.batch(ids, self.cfg.body.min_keypoint_confidence)
+        C, B = self.session.num_cameras, len(frames)
+        points = np.zeros((B, C, self.cfg.body.points_per_view, 3), np.float32)
+        point_valid = np.zeros(points.shape[:3], bool)
+        P = self.cfg.global_.object_points_per_view * C
+        cloud = np.zeros((B, P, 3), np.float32)
+        cloud_valid = np.zeros((B, P), bool)
+
+        def read_frame(b: int) -> None:  # in IO threads; each view's depth decoded once for person and object
+            i, frame_id = frames[b], int(ids[b])
+            depths = [self.session.read_depth(c, frame_id) for c in range(C)]
+            points[b], point_valid[b] = self.person.frame(frame_id, kps[b], depths)
+            pts = self.object_points(frame_id, per_frame.R[i], per_frame.t[i], bool(per_frame.object_valid[i]),
+                                     self.cfg.global_.seed, depths)
+            cloud[b, :len(pts)], cloud_valid[b, :len(pts)] = pts, True
+
+        in_threads(read_frame, range(B))
+        device = self.device
+        obs = BodyObservations(ids, torch.from_numpy(kps).to(device), torch.from_numpy(points).to(device),
+                               torch.from_numpy(point_valid).to(device))
+        R = torch.as_tensor(per_frame.R[frames], dtype=torch.float32)
+        t = torch.as_tensor(per_frame.t[frames], dtype=torch.float32)
+        reference = (shape.samples @ R.transpose(1, 2)) + t[:, None]
+        return WindowData(obs, torch.from_numpy(cloud).to(device), torch.from_numpy(cloud_valid).to(device),
+                          reference.to(device),
+                          torch.as_tensor(per_frame.object_confidence[frames], dtype=torch.float32, device=device),
+                          torch.as_tensor(per_frame.grasping[frames], dtype=torch.float32, device=device),
+                          grasp_rows=tuple(torch.as_tensor(np.flatnonzero(per_frame.grasping[frames, h]), device=device)
+                                           for h in range(2)))
+
+
+def object_inside_body(session, out_dir: Path, share: float, margin_m: float = 0.02) -> np.ndarray:
+    """(T,) bool: frames whose tracked object pose has more than `share` of its surface samples at
+    least `margin_m` inside the per-frame body (signed by the nearest body vertex's normal). Without
+    masks the tracker can fit the object to the person's own points; the joint fit would then push
+    the body out of it. A held object stays outside the body but for the fingers
+    (`global.object_inside_body_share`)."""
+    from scipy.spatial import cKDTree
+
+    files = [per_frame_result(out_dir, stage, name) for stage, name in (
+        ("object", "object_poses.npz"), ("body", "body_vertices.npy"), ("body", "body_faces.npy"),
+        ("body", "body_params.npz"))]
+    if not all(f.exists() for f in files):  # `load_per_frame` names a missing stage; no meshes: not checked
+        return np.zeros(session.num_frames, bool)
+    poses = np.load(files[0])
+    vertices = np.load(files[1], mmap_mode="r")
+    faces = np.load(files[2])
+    valid = poses["valid"].astype(bool) & np.load(files[3])["valid"].astype(bool)
+    samples, _ = trimesh.sample.sample_surface_even(session.object.load_mesh(), 256, seed=0)
+    inside = np.zeros(len(valid), bool)
+
+    def check(i: int) -> None:
+        body = np.asarray(vertices[i], np.float64)
+        normals = trimesh.Trimesh(body, faces, process=False).vertex_normals
+        world = samples @ poses["R"][i].T + poses["t"][i]
+        _, nearest = cKDTree(body).query(world)
+        depth = ((body[nearest] - world) * normals[nearest]).sum(1)
+        inside[i] = (depth > margin_m).mean() > share
+
+    in_threads(check, np.flatnonzero(valid))
+    return inside
+
+
+def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: float, g) -> dict:
+    """The tracked object's free-flight episodes (GraviCap): frames where the contact stage sees no
+    body contact and the object's surface is clear of the ground plane, for `flight_min_frames`.
+    Gravity is -9.81 along the ground normal; with no ground plane (prepare found no floor) the up
+    direction comes from the flights themselves (`gravity_from_flight`), written to
+    OUT/global/gravity.json by the caller's metrics ("gravity_source": "flight")."""
+    from intercap.dynamics.flight import falling_episodes, find_flight_episodes, gravity_from_flight, object_on_ground
+
+    T = len(per_frame.contact)
+    centres = per_frame.t + np.einsum("tij,j->ti", per_frame.R, shape.centroid.numpy())
+    centres = np.where(per_frame.object_valid[:, None], centres, np.nan)
+    touching = per_frame.contact.copy()
+    if ground is not None:
+        points = np.einsum("tij,mj->tmi", per_frame.R, shape.samples.numpy()) + per_frame.t[:, None]
+        touching |= object_on_ground(points, ground.point, ground.normal, g.flight_ground_margin_m)
+        up, source = np.asarray(ground.normal, np.float64), "ground"
+    else:
+        up, source = np.array([0.0, 0.0, 1.0]), "none"  # only to run the detection; replaced below
+    episodes = find_flight_episodes(centres, touching, up, fps, g.flight_min_frames)
+    held = []  # runs touching nothing that do not fall (`run` says so, once)
+    if ground is not None:  # with no floor, `gravity_from_flight` checks the episodes against gravity itself
+        episodes, held = falling_episodes(centres, episodes, fps, up, g.flight_max_residual_m)
+    figures = {"flight_episodes": episodes.tolist(), "flight_runs_held": [[a, b] for a, b, _ in held]}
+    if ground is None and len(episodes):
+        try:
+            fit = gravity_from_flight(centres, episodes, fps)
+            up, source = fit["up"], "flight"
+            figures.update(gravity_from_flight_g_norm=fit["g_norm"],
+                           gravity_from_flight_residual_mm=1e3 * fit["residual_m"])
+        except ValueError as error:
+            log.warning("global: %s; the free-flight term is off", error)
+            episodes = episodes[:0]
+    if ground is None and source != "flight":
+        episodes = episodes[:0]
+    figures["gravity_source"] = source
+    figures["gravity_up"] = [float(v) for v in up]
+    episode_of_frame = np.full(T, -1, np.int64)
+    for e, (a, b) in enumerate(episodes):
+        episode_of_frame[a:b + 1] = e
+    figures["flight_frames"] = int((episode_of_frame >= 0).sum())
+    return {"episodes": episodes, "up": up, "episode_of_frame": episode_of_frame, "figures": figures, "held": held}

@@ -150,8 +150,8 @@ ANNY_LOAD_BLEND_SHAPE: list = []  # anny's own `load_blend_shape`, once `build_a
 
 def load_blend_shape(filename, vertices_count: int, world_transformation, dtype) -> torch.Tensor:
     """anny's `load_blend_shape` (a gzipped text file of "vertex dx dy dz" rows, in decimetres),
-    parsed in one numpy pass: anny's cache build spent 70 % of its 2 min 50 s in the per-row Python
-    loop (py-spy, stop 44). Same offsets to the bit; files it cannot read so go to anny's own."""
+    parsed in one numpy pass instead of anny's per-row Python loop, where its cache build spent most
+    of its time (BENCHMARKS.md). Same offsets to the bit; files it cannot read so go to anny's own."""
     with gzip.open(filename, "rt") as archive, warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "input contained no data": a few targets are empty
         rows = np.loadtxt(archive, dtype=np.float64, ndmin=2)
@@ -342,7 +342,7 @@ class AnnyBody(BodyModel):
         rest = core(None, None)
         rest_vertices = rest["vertices"][0].detach().double().cpu().numpy()
         rest_heads = rest["bone_poses"][0, :, :3, 3].detach().double().cpu().numpy()
-        weights = self._dense_weights(core)  # (V, J)
+        weights = self.dense_weights(core)  # (V, J)
         dominant = weights.argmax(1)
         self.register_buffer("fingertip_vertex_ids", self._fingertip_vertices(rest_vertices, rest_heads, dominant))
         self.up_axis = np.array([0.0, 0.0, 1.0])
@@ -385,7 +385,7 @@ class AnnyBody(BodyModel):
                              persistent=False)
 
     @staticmethod
-    def _dense_weights(core) -> np.ndarray:
+    def dense_weights(core) -> np.ndarray:
         ids = core.vertex_bone_indices.long().cpu().numpy()
         w = core.vertex_bone_weights.double().cpu().numpy()
         dense = np.zeros((ids.shape[0], core.bone_count))
@@ -495,12 +495,12 @@ class AnnyBody(BodyModel):
         sources = self.chain_sources if with_global else self.pose_sources
         return axis_angle_to_matrix(torch.cat(parts, 1).index_select(1, sources))
 
-    def _pose_matrices(self, params: BodyParams) -> torch.Tensor:
+    def pose_matrices(self, params: BodyParams) -> torch.Tensor:
         """(B, 104, 4, 4) homogeneous `bone_rotations`."""
         return torch.nn.functional.pad(self.bone_rotations(params), (0, 1, 0, 1)) + self.homogeneous_corner
 
     def forward(self, params: BodyParams) -> BodyOutput:
-        out = self.core(self._pose_matrices(params), phenotype_kwargs=params.shape, facial_actions=params.expression)
+        out = self.core(self.pose_matrices(params), phenotype_kwargs=params.shape, facial_actions=params.expression)
         vertices = out["vertices"]  # (B, V, 3) model coordinates
         joints = out["bone_poses"][..., :3, 3]  # (B, J, 3)
         coco = torch.einsum("kv,bvd->bkd", self.coco_weights, vertices)  # (B, 23, 3)

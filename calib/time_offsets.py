@@ -4,9 +4,8 @@ A camera whose frames are taken δ seconds after the others' (devices recording 
 drift by up to half a frame period) sees the person where the fitted motion puts them δ later: its
 2D keypoints lie off the fit's projections along the projected velocity. The least-squares δ of
 those residuals on that velocity, per camera, measures it. The fit follows the cameras' majority,
-so a lone late camera shows part of its lag (one of four views 16.7 ms late read 13 ms against the
-others' median) and offsets are given against the cameras' median. A synchronised rig reads within
-0.5 ms (BENCHMARKS.md, stop 47).
+so a lone late camera shows only part of its lag, and offsets are given against the cameras'
+median (figures on late and synchronised rigs: BENCHMARKS.md, 2026-11-29, cameras out of sync).
 """
 from __future__ import annotations
 

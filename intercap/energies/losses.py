@@ -130,19 +130,19 @@ def nearest_visible_vertices(points: torch.Tensor, vertices: torch.Tensor, visib
     B, C = visible.shape[:2]
     every = torch.ones(points.shape[:3], dtype=torch.bool, device=points.device)
     per_view = vertices[:, None].expand(B, C, *vertices.shape[1:])
-    return _nearest_per_view(points, every, per_view, visible, np.inf).to(points.device)
+    return nearest_per_view(points, every, per_view, visible, np.inf).to(points.device)
 
 
-def _nearest_per_view(queries: torch.Tensor, query_mask: torch.Tensor, targets: torch.Tensor,
+def nearest_per_view(queries: torch.Tensor, query_mask: torch.Tensor, targets: torch.Tensor,
                       target_mask: torch.Tensor, max_distance: float) -> torch.Tensor:
     """Per frame and view, the index (B, C, Q) of the nearest of the masked targets (B, C, T, 3) to
     each masked query (B, C, Q, 3); -1 for unmasked queries, none within `max_distance`, or no
     target. On the CPU a k-d tree per frame and view (scipy): a dense distance matrix costs 20x
-    more there. On a GPU the dense matrix (`_nearest_dense`): a few kernels instead of copying to
+    more there. On a GPU the dense matrix (`nearest_dense`): a few kernels instead of copying to
     the CPU and B x C trees (the H100's 150-frame bench spent 14 s of 169 in the trees), and
     recordable as a CUDA graph (`optim.records_graphs`)."""
     if optim.records_graphs(queries.device):
-        return _nearest_dense(queries, query_mask, targets, target_mask, max_distance)
+        return nearest_dense(queries, query_mask, targets, target_mask, max_distance)
     from scipy.spatial import cKDTree
 
     B, C, Q, _ = queries.shape
@@ -159,9 +159,9 @@ def _nearest_per_view(queries: torch.Tensor, query_mask: torch.Tensor, targets: 
     return torch.from_numpy(nearest)
 
 
-def _nearest_dense(queries: torch.Tensor, query_mask: torch.Tensor, targets: torch.Tensor,
+def nearest_dense(queries: torch.Tensor, query_mask: torch.Tensor, targets: torch.Tensor,
                    target_mask: torch.Tensor, max_distance: float, max_entries: int = 1 << 26) -> torch.Tensor:
-    """`_nearest_per_view` by the dense distance matrix, in chunks of frames of at most
+    """`nearest_per_view` by the dense distance matrix, in chunks of frames of at most
     `max_entries` (query, target) pairs. The squared distances up to each query's own |q|^2,
     |t|^2 - 2 q.t, are one batched matrix product (with torch.cdist's exact mode, slow on GPUs,
     the H200's 132 s bench waited 26 s on the refresh); coordinates are centred per frame and
@@ -196,7 +196,7 @@ def nearest_points(vertices: torch.Tensor, visible: torch.Tensor, points: torch.
     No gradient: the model-to-data half of E_D's correspondences."""
     B, C = visible.shape[:2]
     per_view = vertices[:, None].expand(B, C, *vertices.shape[1:])
-    return _nearest_per_view(per_view, visible, points, point_valid, max_distance).to(points.device)
+    return nearest_per_view(per_view, visible, points, point_valid, max_distance).to(points.device)
 
 
 @dataclass

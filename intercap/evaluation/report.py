@@ -618,7 +618,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     if physics is None:
         page.not_run("physics", "Physics", "no OUT/physics/physics.npz (stage physics)")
     else:
-        page.add("physics", "Physics", _physics_section(physics, fids))
+        page.add("physics", "Physics", physics_section(physics, fids))
     _advance(bar, steps)
     if gt is not None:
         page.add("evaluation", "Evaluation against ground truth", _evaluation_section(out_dir, gt, fids))
@@ -937,7 +937,7 @@ def _motion_section(stages, frames, fids, fps, mesh, gt) -> str:
     return "".join(parts)
 
 
-def _physics_section(physics: dict, fids: np.ndarray) -> str:
+def physics_section(physics: dict, fids: np.ndarray) -> str:
     series = {}
     names = {"hand_force": ("left hand", "right hand"), "foot_force": ("left foot", "right foot")}
     for key, labels in names.items():

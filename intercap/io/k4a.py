@@ -149,7 +149,7 @@ def _timeline(anchors: list[int], fps: float) -> tuple[list[int], np.ndarray]:
 # ---------------------------------------------------------------- session writing
 
 
-def _frame_selection(n: int, fps: float, start, end, stride: int) -> np.ndarray:
+def frame_selection(n: int, fps: float, start, end, stride: int) -> np.ndarray:
     """Indices into the aligned timeline: start/end inclusive, as frame numbers or
     seconds from the first aligned frame ("2.5s")."""
 
@@ -358,7 +358,7 @@ def import_k4a(
     names = [f"cam{d}" for d in range(len(recs))]
     poses, placeholders = _rig_poses(recs, names, calibration, uncalibrated)
     al = align(recs)
-    sel = _frame_selection(len(al.times_ns), al.fps, start, end, stride)
+    sel = frame_selection(len(al.times_ns), al.fps, start, end, stride)
     sizes = [_parse_size(color_resolution, r.color_size) for r in recs]
     lenses = [r.calibration.color.scaled(*s) for r, s in zip(recs, sizes)]
     t_setup = time.perf_counter() - t0

@@ -190,7 +190,7 @@ def test_bone_transforms_are_annys_kinematics_in_the_world(anny_model):
     params.shape = torch.rand(params.shape.shape, generator=g)
     rest = anny_model.rest_state(params, anny_model.fitting_subsample[:50])
     transforms, poses = anny_model.bone_transforms(params, rest)
-    annys_transforms, annys_poses = anny_model.core.get_bone_transforms(anny_model._pose_matrices(params), rest.bones)
+    annys_transforms, annys_poses = anny_model.core.get_bone_transforms(anny_model.pose_matrices(params), rest.bones)
     place = torch.eye(4).repeat(4, 1, 1)
     place[:, :3, :3] = axis_angle_to_matrix(params.global_orient)
     place[:, :3, 3] = params.transl

@@ -98,12 +98,12 @@ def test_an_object_held_where_contact_was_missed_is_no_flight():
     assert len(out["episodes"]) == 0 and (out["episode_of_frame"] < 0).all()
     assert out["figures"]["flight_runs_held"] == [[lift, T - 1]]
 
-    from intercap.evaluation.report import _physics_section
+    from intercap.evaluation.report import physics_section
     from intercap.stages.physics.stage import flight_analysis
 
     physics = flight_analysis(centres, contact, UP, FPS, 8, 0.05)
     assert len(physics["episodes"]) == 0 and physics["held"].tolist() == [[lift, T - 1]]
-    page = _physics_section({"hand_force": np.zeros((T, 2, 3)), "flight_runs_held": physics["held"]}, np.arange(T))
+    page = physics_section({"hand_force": np.zeros((T, 2, 3)), "flight_runs_held": physics["held"]}, np.arange(T))
     assert f"not falling (a missed contact, not a flight): frames {lift}-{T - 1}" in page
 
 

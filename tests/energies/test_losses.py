@@ -117,7 +117,7 @@ def test_hand_contact_equals_its_definition_with_gradients():
 def test_dense_nearest_search_finds_what_the_trees_find():
     """A GPU's correspondence search (the dense distance matrix, in chunks of frames) returns the
     k-d trees' indices: masked queries and targets, a view with no target, the distance bound."""
-    from intercap.energies.losses import _nearest_dense, _nearest_per_view
+    from intercap.energies.losses import nearest_dense, nearest_per_view
 
     g = torch.Generator().manual_seed(4)
     B, C, Q, T = 5, 3, 60, 45
@@ -125,8 +125,8 @@ def test_dense_nearest_search_finds_what_the_trees_find():
     query_mask, target_mask = torch.rand(B, C, Q, generator=g) > 0.2, torch.rand(B, C, T, generator=g) > 0.3
     target_mask[1, 2] = False  # this view has no target
     for bound in (np.inf, 0.08):
-        trees = _nearest_per_view(queries, query_mask, targets, target_mask, bound)
-        dense = _nearest_dense(queries, query_mask, targets, target_mask, bound, max_entries=2 * C * Q * T)
+        trees = nearest_per_view(queries, query_mask, targets, target_mask, bound)
+        dense = nearest_dense(queries, query_mask, targets, target_mask, bound, max_entries=2 * C * Q * T)
         assert (trees == dense).all()
         assert (dense[1, 2] == -1).all() and (dense[~query_mask] == -1).all()
     assert ((trees >= 0).sum() > 0) and ((trees == -1) & query_mask).sum() > 0  # the bound bites, not everywhere

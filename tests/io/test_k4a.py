@@ -291,10 +291,10 @@ def test_bad_recordings_name_the_file(tmp_path):
 
 
 def test_frame_range_in_frames_or_seconds():
-    from intercap.io.k4a import _frame_selection
+    from intercap.io.k4a import frame_selection
 
-    assert _frame_selection(100, 30.0, None, None, 1).tolist() == list(range(100))
-    assert _frame_selection(100, 30.0, "1s", "2s", 10).tolist() == [30, 40, 50, 60]
-    assert _frame_selection(100, 30.0, 5, 500, 40).tolist() == [5, 45, 85]
+    assert frame_selection(100, 30.0, None, None, 1).tolist() == list(range(100))
+    assert frame_selection(100, 30.0, "1s", "2s", 10).tolist() == [30, 40, 50, 60]
+    assert frame_selection(100, 30.0, 5, 500, 40).tolist() == [5, 45, 85]
     with pytest.raises(K4AError, match="selects no frame"):
-        _frame_selection(100, 30.0, 200, None, 1)
+        frame_selection(100, 30.0, 200, None, 1)

@@ -198,7 +198,7 @@ def test_refit_recovers_a_quarter_turn(sample_tracker):
     wrong = tracker.fit(obs, R0, t0)
     fixed = tracker.settle(tracker.refit(obs, wrong, (R0, t0)))
     assert fixed.energy < wrong.energy
-    centre_error = np.linalg.norm(tracker._to_centre(fixed.R, fixed.t) - tracker._to_centre(R, t))
+    centre_error = np.linalg.norm(tracker.to_centre(fixed.R, fixed.t) - tracker.to_centre(R, t))
     axis_error = np.degrees(np.arccos(abs((fixed.R @ axis) @ (R @ axis))))
     assert centre_error < 0.01 and axis_error < 3.0, (centre_error, axis_error)
 
@@ -211,7 +211,7 @@ def test_pose_behind_the_observed_surface_costs_more(sample_tracker):
     R, t = truth["R"][frame], truth["t"][frame]
     obs = tracker.observe(frame, (R, t))
     at_truth = tracker.fit(obs, R, t, iterations=0).energy
-    away = tracker.cameras.T_world_from_cam[:, :3, 3].mean(0).numpy() - tracker._to_centre(R, t)
+    away = tracker.cameras.T_world_from_cam[:, :3, 3].mean(0).numpy() - tracker.to_centre(R, t)
     behind = t - 0.10 * away / np.linalg.norm(away)
     assert tracker.fit(obs, R, behind, iterations=0).energy > at_truth + 0.2
 
@@ -368,7 +368,7 @@ def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_trac
         return fitting(cls, needed, 0.0, 1)
 
     monkeypatch.setattr(tracker, "fixed_shapes", True)
-    monkeypatch.setattr(tracker, "_fixed_fits", {})
+    monkeypatch.setattr(tracker, "fixed_fits", {})
     monkeypatch.setattr(rendering.Capacity, "fitting", classmethod(tight))
     waits, evaluators = watch_evaluations(monkeypatch)
     for k, (requests, eager) in enumerate(rounds):
@@ -378,7 +378,7 @@ def test_fits_in_fixed_shapes_are_the_eager_fits_and_wait_on_nothing(sample_trac
         for a, b in zip(eager, fixed):
             assert abs(a.energy - b.energy) < 1e-5 * max(1.0, abs(a.energy)) and abs(a.confidence - b.confidence) < 1e-4
             assert np.abs(a.R - b.R).max() < 1e-4 and np.abs(a.t - b.t).max() < 1e-5
-    assert list(tracker._fixed_fits) == [3] and len(evaluators) == len(sized)  # one set of shapes, grown as needed
+    assert list(tracker.fixed_fits) == [3] and len(evaluators) == len(sized)  # one set of shapes, grown as needed
     assert sum(len(calls) for calls in evaluators) > 20 and waits.seen == [], waits.seen
 
 
@@ -390,7 +390,7 @@ def test_fits_replayed_from_recordings_are_the_eager_fits(sample_tracker, monkey
     tracker, session, truth = sample_tracker
     rounds = eager_rounds(tracker, truth, 7, ((5, 17, 26), (8, 12, 29)))
     monkeypatch.setattr(tracker, "fixed_shapes", True)
-    monkeypatch.setattr(tracker, "_fixed_fits", {})
+    monkeypatch.setattr(tracker, "fixed_fits", {})
     for requests, eager in rounds:
         for a, b in zip(eager, tracker.fit_many(requests)):
             assert abs(a.energy - b.energy) < 1e-5 * max(1.0, abs(a.energy)) and abs(a.confidence - b.confidence) < 1e-4

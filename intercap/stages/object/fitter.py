@@ -128,7 +128,7 @@ class ObjectTracker(ObservationReader):
         self.turns = [axis_rotation(a, angle) for a in axes for angle in (90, 180, 270)]  # (3, 3) in object coords
         # renders of fixed shapes (`rendering.Capacity`), each fit step one replayed CUDA graph
         self.fixed_shapes = optim.records_graphs(self.device) and cfg.cuda_graphs
-        self._fixed_fits: dict[int, FixedShapeFits] = {}  # by the number of poses fitted at once
+        self.fixed_fits: dict[int, FixedShapeFits] = {}  # by the number of poses fitted at once
         self._mesh, self._symmetry = mesh, None  # `symmetry`'s, found when first asked
 
     # -- pose helpers ---------------------------------------------------------------------
@@ -263,8 +263,8 @@ class ObjectTracker(ObservationReader):
 
     def turned(self, R, t) -> list[tuple[np.ndarray, np.ndarray]]:
         """Pose (R, t) turned about its centre by 90/180/270 deg about each principal axis of the mesh."""
-        centre = self._to_centre(R, t)
-        return [(R @ S, self._from_centre(R @ S, centre)) for S in self.turns]
+        centre = self.to_centre(R, t)
+        return [(R @ S, self.from_centre(R @ S, centre)) for S in self.turns]
 
     # -- initialisation ----------------------------------------------------------------------
     def registration_hypotheses(self, points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -307,7 +307,7 @@ class ObjectTracker(ObservationReader):
         _, _, R, centre = refined[0]
         turned = [self._icp(scene, R @ S, centre, voxel, fine_only=True) for S in self.turns]
         kept += distinct([(R, c) for _, _, R, c in turned], 2 * voxel, kept)
-        return [(R, self._from_centre(R, centre)) for R, centre in kept]
+        return [(R, self.from_centre(R, centre)) for R, centre in kept]
 
     def _icp(self, scene, R, centre, voxel: float, fine_only: bool = False):
         """ICP (point-to-plane) of the observed points onto the model from pose (R, centre):
@@ -376,16 +376,16 @@ class PoseFits:
         self.budget = np.array([cfg.iterations if it is None else it for *_, it in requests])
         R0 = torch.as_tensor(np.stack([np.asarray(R) for _, R, _, _ in requests]), dtype=torch.float32, device=dev)
         r6 = matrix_to_rotation_6d(R0).clone().requires_grad_(True)
-        t_c = torch.as_tensor(np.stack([tracker._to_centre(R, t) for _, R, t, _ in requests]), dtype=torch.float32,
+        t_c = torch.as_tensor(np.stack([tracker.to_centre(R, t) for _, R, t, _ in requests]), dtype=torch.float32,
                               device=dev).clone().requires_grad_(True)
         self.crops = crops.to(dev)  # cut on the CPU (`windows`), rendered where the fit runs
         self.stalled, self.decays, self.used = np.zeros(P, int), np.zeros(P, int), np.zeros(P, int)
         self.done = self.budget <= self.used
         self.fixed = None
         if tracker.fixed_shapes and not self.done.all():
-            if P not in tracker._fixed_fits:
-                tracker._fixed_fits[P] = FixedShapeFits(tracker, P)
-            self.fixed = tracker._fixed_fits[P]
+            if P not in tracker.fixed_fits:
+                tracker.fixed_fits[P] = FixedShapeFits(tracker, P)
+            self.fixed = tracker.fixed_fits[P]
             self.fixed.load(self.obs_mask, self.obs_depth, self.obs_known, self.view_weight, self.crops, r6, t_c)
             r6, t_c, self.adam = self.fixed.r6, self.fixed.t_c, self.fixed.adam
         else:
@@ -471,7 +471,7 @@ class PoseFits:
         with torch.no_grad():
             R = rotation_6d_to_matrix(self.r6).double().cpu().numpy()
             t_c = self.t_c.double().cpu().numpy()
-        return [Fit(R=R[p], t=self.tracker._from_centre(R[p], t_c[p]), energy=float(total[p]),
+        return [Fit(R=R[p], t=self.tracker.from_centre(R[p], t_c[p]), energy=float(total[p]),
                     confidence=float(confidence[p])) for p in range(self.P)]
 
 

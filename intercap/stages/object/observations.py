@@ -119,11 +119,11 @@ class ObservationReader:
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
 
-    def _to_centre(self, R, t) -> np.ndarray:
+    def to_centre(self, R, t) -> np.ndarray:
         """The mesh centroid's world position under object->world pose (R, t)."""
         return np.asarray(R) @ self.centroid + np.asarray(t)
 
-    def _from_centre(self, R, t_c) -> np.ndarray:
+    def from_centre(self, R, t_c) -> np.ndarray:
         """The translation that puts the mesh centroid at `t_c` under rotation R."""
         return np.asarray(t_c) - np.asarray(R) @ self.centroid
 
@@ -214,7 +214,7 @@ class ObservationReader:
         candidates = clean_mask(foreground & ~person if person is not None else foreground)
         if predicted is not None:
             R, t = predicted
-            centre = self._to_centre(R, t)
+            centre = self.to_centre(R, t)
             ys, xs = np.nonzero(candidates & (depth > 0))
             points = self._pixel_points(c, ys, xs, depth[ys, xs])
             near = np.linalg.norm(points - centre, axis=1) < self.radius + self.cfg.near_margin_m + reach_m

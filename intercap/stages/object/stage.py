@@ -81,7 +81,7 @@ def prediction(tracker: ObjectTracker, history: list, i: int, initial_pose):
         k = trusted_at[-1]
         if predicted is None:
             predicted = history[k]  # coast: the object was seen recently, start where it was
-        steps = [np.linalg.norm(tracker._to_centre(*history[j]) - tracker._to_centre(*history[j - 1]))
+        steps = [np.linalg.norm(tracker.to_centre(*history[j]) - tracker.to_centre(*history[j - 1]))
                  for j in trusted_at[-5:] if j > 0 and history[j - 1] is not None]
         reach = max(steps, default=0.0) * (i - k)
     return predicted, reach

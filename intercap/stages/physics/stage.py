@@ -122,7 +122,7 @@ def pose_body(model, params, ids: dict, point: np.ndarray, up: np.ndarray, chunk
     with torch.no_grad():
         for s in range(0, T, chunk):
             p = params[s:s + chunk]
-            out = core(model._pose_matrices(p), phenotype_kwargs=p.shape, facial_actions=p.expression)
+            out = core(model.pose_matrices(p), phenotype_kwargs=p.shape, facial_actions=p.expression)
             Rg = ne_rot(p.global_orient)  # (B, 3, 3)
             tr = p.transl.double()
             bones = out["bone_poses"].double()
@@ -152,7 +152,7 @@ def body_landmarks(model, rest_vertices: np.ndarray) -> dict:
     """Vertex ids at rest (anny: z up, facing -y): head top, heels and toe tips, four sole corners
     per foot, the palm regions."""
     core = _anny_core(model)
-    dominant = model._dense_weights(core).argmax(1)
+    dominant = model.dense_weights(core).argmax(1)
     names = list(model.joint_names)
     out_names, ids = ["head_top"], [int(np.argmax(rest_vertices[:, 2]))]
     soles = []
@@ -201,7 +201,7 @@ def rest_body(model, shape) -> tuple[np.ndarray, np.ndarray]:
     rest.shape[:] = torch.as_tensor(shape, dtype=model.dtype)
     core = _anny_core(model)
     with torch.no_grad():
-        rest_out = core(model._pose_matrices(rest), phenotype_kwargs=rest.shape, facial_actions=rest.expression)
+        rest_out = core(model.pose_matrices(rest), phenotype_kwargs=rest.shape, facial_actions=rest.expression)
     return rest_out["vertices"][0].double().numpy(), rest_out["bone_poses"][0].double().numpy()
 
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -15,13 +16,25 @@ def _cmd_validate(args) -> int:
     return 1 if any(p.fatal for p in problems) else 0
 
 
+def _stages_override(stages: str | None) -> list[str]:
+    """`--stages a,b` as the override run.stages=a,b; an empty name (`--stages ,`, `a,,b`) is an error
+    rather than a silent run of every stage."""
+    from intercap.config import ConfigError
+
+    if stages is None:
+        return []
+    names = [name.strip() for name in stages.split(",")]
+    if not all(names):
+        raise ConfigError(f"--stages {stages!r}: an empty stage name; give names separated by commas, "
+                          "e.g. --stages prepare,detect")
+    return [f"run.stages={','.join(names)}"]
+
+
 def _cmd_run(args) -> int:
     from intercap.config import load_config
     from intercap.pipeline import run_pipeline
 
-    overrides = list(args.set or [])
-    if args.stages:
-        overrides.append(f"run.stages={args.stages}")
+    overrides = list(args.set or []) + _stages_override(args.stages)
     if args.force:
         overrides.append("run.force=true")
     if args.device:
@@ -51,7 +64,7 @@ def _cmd_run_many(args) -> int:
     from intercap.batch import format_summary, run_many
     from intercap.config import load_config
 
-    overrides = list(args.set or []) + ([f"run.stages={args.stages}"] if args.stages else [])
+    overrides = list(args.set or []) + _stages_override(args.stages)
     cfg = load_config(args.config, overrides + (["run.force=true"] if args.force else []))
     try:
         rows = run_many(args.sessions, args.out, cfg, address=args.address, local=args.local,
@@ -273,9 +286,45 @@ def main(argv: list[str] | None = None) -> int:
     except SessionError as exc:  # lists every problem found
         print(f"intercap {args.command}: {exc}", file=sys.stderr)
         return 2
-    except (ConfigError, StageError, FileNotFoundError, ValueError) as exc:
+    except FileNotFoundError as exc:
+        print(f"intercap {args.command}: error: {os_error_line(exc)}", file=sys.stderr)
+        return 2
+    except (ConfigError, StageError, ValueError) as exc:
         print(f"intercap {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a full disk, a read-only or unwritable folder, a file where a folder goes
+        print(f"intercap {args.command}: error: {os_error_line(exc)}", file=sys.stderr)
+        return 1
+    except Exception as exc:  # noqa: BLE001 - a bug: one line and where its traceback is, not the traceback
+        if args.verbose:
+            raise
+        from intercap.batch import one_line
+
+        print(f"intercap {args.command}: unexpected error: {one_line(exc)} ({traceback_hint()})", file=sys.stderr)
+        return 1
+
+
+def os_error_line(exc: OSError) -> str:
+    """`path: cause` of an OSError (`No space left on device`, `Read-only file system`, ...)."""
+    cause = exc.strerror or str(exc)
+    if exc.filename is None:
+        return cause
+    return f"{exc.filename}: {cause}" + (f" (to {exc.filename2})" if exc.filename2 else "")
+
+
+def traceback_hint() -> str:
+    """Where the traceback of the exception being handled was written (a log file in the temporary
+    folder), or, when it cannot be written, how to see it."""
+    import tempfile
+    import traceback
+
+    try:
+        fd, path = tempfile.mkstemp(prefix="intercap-error-", suffix=".log")
+        with os.fdopen(fd, "w") as f:
+            f.write(" ".join(sys.argv) + "\n" + traceback.format_exc())
+    except OSError:
+        return "rerun with -v for the traceback"
+    return f"traceback in {path}; -v prints it"
 
 
 if __name__ == "__main__":

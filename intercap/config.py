@@ -96,7 +96,11 @@ def _coerce(value: Any, current: Any, key: str) -> Any:
     """Parse a command-line string into the type of the field it overrides."""
     if not isinstance(value, str):
         return value
-    parsed = yaml.safe_load(value)
+    try:
+        parsed = yaml.safe_load(value)
+    except yaml.YAMLError as exc:
+        reason = getattr(exc, "problem", None) or type(exc).__name__
+        raise ConfigError(f"{key}: {value!r} is not a value ({reason}); quote it in YAML") from None
     if current is None or parsed is None:
         return parsed
     if isinstance(current, bool):
@@ -151,6 +155,40 @@ LINE_SEARCHES = ("auto", "strong_wolfe", "armijo")  # `optim.minimise`'s
 CHOICES = {("body", "line_search"): LINE_SEARCHES, ("global_", "line_search"): LINE_SEARCHES,
            ("prepare", "calib_refine"): ("auto", "always", "never")}
 
+# Counts, strides and sizes a stage divides by, steps by or allocates: 0 or less is refused when read
+# (rather than `step must be nonzero` or a modulo by zero halfway through a run).
+POSITIVE = {
+    "prepare": ("pixel_stride", "voxel_size_m", "ground_frames", "plane_iterations"),
+    "detect": ("crop_size_px",),
+    "object": ("crop_size", "checkpoint_every", "voxel_size_m", "overlay_every"),
+    "body": ("batch_frames", "batch_frames_gpu", "overlay_every"),
+    "global_": ("window_frames", "window_frames_gpu", "sdf_resolution", "sdf_cell_m"),
+    "report": ("overlay_every", "thumbnail_width", "max_frames"),
+    "run": ("min_frames_per_worker",),
+}
+NON_NEGATIVE = {"prepare": ("calib_frames", "calib_refine_frames"), "run": ("workers",)}
+# Pairs of settings that bound a range: (section, lower, upper), the lower below the upper.
+ORDERED = (("prepare", "depth_min_m", "depth_max_m"),)
+
+
+def check_ordered(cfg: "Config") -> None:
+    """A ConfigError when a range's lower bound is not below its upper one (`ORDERED`)."""
+    for section, lower, upper in ORDERED:
+        node = getattr(cfg, section)
+        if not getattr(node, lower) < getattr(node, upper):
+            raise ConfigError(f"{section}.{lower} ({getattr(node, lower)!r}) must be below "
+                              f"{section}.{upper} ({getattr(node, upper)!r})")
+
+
+def check_range(section: str, key: str, path: str, value: Any) -> None:
+    """A ConfigError for a number below what the setting allows (`POSITIVE`, `NON_NEGATIVE`)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return
+    if key in POSITIVE.get(section, ()) and not value > 0:
+        raise ConfigError(f"{path}: must be greater than 0, got {value!r}")
+    if key in NON_NEGATIVE.get(section, ()) and not value >= 0:
+        raise ConfigError(f"{path}: must be 0 or more, got {value!r}")
+
 
 # Sections whose name is a Python keyword: written `global` in YAML and overrides.
 KEYWORD_SECTIONS = {"global": "global_"}
@@ -173,6 +211,7 @@ def _apply(node: Any, updates: dict, prefix: str = "", section: str = "") -> Non
             allowed = CHOICES.get((section, key))
             if allowed and value not in allowed:
                 raise ConfigError(f"{path}: expected one of {', '.join(allowed)}, got {value!r}")
+            check_range(section, key, path, value)
             setattr(node, key, value)
 
 
@@ -199,6 +238,7 @@ def load_config(yaml_path: str | Path | None = None, overrides: list[str] | None
         for section in reversed(sections):
             nested = {section: nested}
         _apply(cfg, nested)
+    check_ordered(cfg)
     return cfg
 
 
@@ -208,4 +248,6 @@ def config_to_dict(cfg: Config) -> dict:
 
 
 def save_config(cfg: Config, path: str | Path) -> None:
-    Path(path).write_text(yaml.safe_dump(config_to_dict(cfg), sort_keys=False))
+    from intercap.io.files import write_text
+
+    write_text(path, yaml.safe_dump(config_to_dict(cfg), sort_keys=False))

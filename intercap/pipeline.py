@@ -7,6 +7,10 @@ changed, and everything after it. A stage that died halfway resumes from its
 own checkpoints when its settings are unchanged (OUT/<stage>/STARTED.json
 records them), and starts clean otherwise. Only stages that exist are run: asking for
 one that is not built yet is an error, never a fake output.
+
+The results folder is guarded: never in, over or containing a session folder, never
+holding another session's results (OUT/run.json; `run.force` replaces them), and
+written by one run at a time (OUT/.lock, held with flock for the whole run).
 """
 from __future__ import annotations
 
@@ -14,8 +18,11 @@ import hashlib
 import importlib
 import json
 import logging
+import os
 import shutil
+import socket
 import time
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
@@ -66,6 +73,29 @@ class StageError(RuntimeError):
     pass
 
 
+class ResultsFolderError(StageError):
+    """The results folder cannot take this run: it is, holds or lies in a session, holds another
+    session's results, or another run is writing to it."""
+
+
+LOCK_NAME = ".lock"  # OUT/.lock: the run writing to the folder (held with flock while it runs)
+
+
+def saved_record(path: Path) -> dict:
+    """A JSON record this runner wrote earlier (DONE.json, STARTED.json, metrics.json), or {} when it
+    cannot be read (a run killed while writing, a damaged disk): said in the log, and the stage is then
+    redone (no fingerprint matches) rather than the run stopped."""
+    try:
+        record = read_json(path)
+    except (OSError, ValueError) as exc:
+        log.warning("%s: unreadable (%s); ignoring it", path, exc)
+        return {}
+    if not isinstance(record, dict):
+        log.warning("%s: not a JSON object; ignoring it", path)
+        return {}
+    return record
+
+
 def available_stages() -> list[str]:
     return [name for name in ORDER if name in STAGES]
 
@@ -108,14 +138,17 @@ def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: 
             continue
         marker = out_dir / name / "DONE.json"
         if marker.exists() and not cfg.run.force:
-            done = read_json(marker)
-            if done.get("fingerprint") == fingerprint:
+            done = saved_record(marker)
+            if done.get("fingerprint") == fingerprint and name in metrics:
                 log.info("%s: already done (%s), skipping; --force to redo", name, marker)
                 continue
-            log.info("%s: settings or inputs changed since the saved run, redoing", name)
+            if done.get("fingerprint") == fingerprint:  # its figures were lost with metrics.json
+                log.info("%s: done, but its figures are not in %s: redoing", name, metrics_path)
+            else:
+                log.info("%s: settings or inputs changed since the saved run, redoing", name)
         marker.unlink(missing_ok=True)
         started = out_dir / name / "STARTED.json"
-        if cfg.run.force or (started.exists() and read_json(started).get("fingerprint") != fingerprint):
+        if cfg.run.force or (started.exists() and saved_record(started).get("fingerprint") != fingerprint):
             shutil.rmtree(out_dir / name, ignore_errors=True)  # partial work of other settings is not resumed
         elif started.exists():
             log.info("%s: resuming the unfinished run", name)
@@ -156,6 +189,79 @@ def check_device(device: str) -> None:
         raise ConfigError(f"run.device={device}: this machine has {torch.cuda.device_count()} CUDA device(s)")
 
 
+def check_results_folder(session_root: Path, out_dir: Path) -> None:
+    """Refuse a results folder that would overwrite a session: the session folder itself, a folder
+    inside it (OUT/ground_truth would replace the truth), one that contains it, any folder with a
+    session.yaml at or above it, or a path that is a file."""
+    out, root = Path(out_dir).resolve(), Path(session_root).resolve()
+    if out.exists() and not out.is_dir():
+        raise ResultsFolderError(f"results folder {out_dir}: is a file, not a folder")
+    if out == root or root in out.parents:
+        where = "is" if out == root else "lies inside"
+        raise ResultsFolderError(f"results folder {out_dir}: {where} the session folder {root}; "
+                                 "results go outside it")
+    if out in root.parents:
+        raise ResultsFolderError(f"results folder {out_dir}: contains the session folder {root}; "
+                                 "choose a results folder outside it")
+    for folder in (out, *out.parents):
+        if (folder / "session.yaml").is_file():
+            where = "is" if folder == out else "lies inside"
+            raise ResultsFolderError(f"results folder {out_dir}: {where} a session folder ({folder / 'session.yaml'}); "
+                                     "results go outside it")
+
+
+@contextmanager
+def results_lock(out_dir: Path):
+    """Hold OUT/.lock (flock) while the block runs: one run at a time per results folder. The OS
+    drops the lock when its process ends, even by kill -9, so a stale file never blocks a rerun."""
+    import fcntl
+
+    path = Path(out_dir) / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(fd, 4096).decode(errors="replace").strip() or "another run"
+            raise ResultsFolderError(f"results folder {out_dir}: in use by {holder}; wait for it to end, "
+                                     "or use another --out") from None
+        except OSError as exc:  # a file system without flock (some network mounts): run unguarded
+            log.warning("%s: cannot lock (%s); make sure no other run writes here", path, exc.strerror)
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()} on {socket.gethostname()}, started {time.strftime('%Y-%m-%d %H:%M:%S')}\n"
+                 .encode())
+        yield
+    finally:
+        os.close(fd)  # releases the lock
+
+
+def claim_results_folder(session_root: Path, out_dir: Path, force: bool) -> None:
+    """A folder holding another session's results (OUT/run.json) is refused, unless `force`: then
+    those results are removed and this run starts clean. Called with the folder's lock held."""
+    record = out_dir / "run.json"
+    if not record.exists():
+        return
+    try:
+        recorded = read_json(record).get("session")
+    except (OSError, ValueError, AttributeError):
+        recorded = None
+    root = str(Path(session_root).resolve())
+    if recorded == root:
+        return
+    other = f"session {recorded}" if recorded else "an unknown session (unreadable run.json)"
+    if not force:
+        raise ResultsFolderError(f"results folder {out_dir}: holds the results of {other}; use another --out, "
+                                 "or --force to replace them")
+    log.warning("%s: replacing the results of %s", out_dir, other)
+    for entry in out_dir.iterdir():
+        if entry.name == LOCK_NAME:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
+
+
 def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[str] | None = None,
                  progress: bool = True) -> dict:
     """Run the requested stages (default: every built stage) on a session.
@@ -168,11 +274,19 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
     check_device(cfg.run.device)
     session = Session.load(session_path)
     out_dir = Path(out_dir)
+    check_results_folder(session.root, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    with results_lock(out_dir):
+        claim_results_folder(session.root, out_dir, cfg.run.force)
+        return _run_in(session, out_dir, cfg, names, progress)
+
+
+def _run_in(session, out_dir: Path, cfg: Config, names: list[str], progress: bool) -> dict:
+    """`run_pipeline` once the results folder is checked and locked."""
     save_config(cfg, out_dir / "config.yaml")
     write_json(out_dir / "run.json", {"session": str(Path(session.root).resolve()), "stages": names})  # for `view`, `report`
     metrics_path = out_dir / "metrics.json"
-    metrics = read_json(metrics_path) if metrics_path.exists() else {}
+    metrics = saved_record(metrics_path) if metrics_path.exists() else {}
 
     try:
         with parallel.repeatable(cfg):

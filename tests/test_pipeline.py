@@ -1,5 +1,6 @@
 """Runner and prepare stage on the committed sample session."""
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -194,9 +195,11 @@ def test_a_bumped_camera_is_refined_and_the_later_stages_see_it(tmp_path):
 
     session = tmp_path / "bumped"
     session.mkdir()
-    for entry in SAMPLE.iterdir():
-        if entry.name != "calibration.json":
+    for entry in SAMPLE.iterdir():  # frame folders linked; files copied (session.yaml's paths stay inside)
+        if entry.is_dir():
             (session / entry.name).symlink_to(entry)
+        elif entry.name != "calibration.json":
+            shutil.copy2(entry, session / entry.name)
     calibration = json.loads((SAMPLE / "calibration.json").read_text())
     true_poses = np.array([c["T_world_from_cam"] for c in calibration["cameras"]])
     bump = drift_transform(0.5, 10.0, seed=2, pivot=true_poses[2][:3, 3])
@@ -222,3 +225,56 @@ def test_a_bumped_camera_is_refined_and_the_later_stages_see_it(tmp_path):
     run_pipeline(session, out, load_config(overrides=overrides + ["prepare.calib_refine=never"]), progress=False)
     assert not (out / "prepare" / "calibration_refined.json").exists()
     assert np.allclose(open_session(str(session), out).cameras[2].T_world_from_cam, bump @ true_poses[2])
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--stages", ","], "--stages ',': an empty stage name"),
+    (["--stages", "prepare,,detect"], "--stages 'prepare,,detect': an empty stage name"),
+    (["--set", "prepare.pixel_stride={a"], "prepare.pixel_stride: '{a' is not a value"),
+    (["--set", "prepare.pixel_stride=0"], "prepare.pixel_stride: must be greater than 0, got 0"),
+    (["--set", "body.batch_frames=-2"], "body.batch_frames: must be greater than 0, got -2"),
+    (["--set", "object.checkpoint_every=0"], "object.checkpoint_every: must be greater than 0, got 0"),
+    (["--set", "run.workers=-1"], "run.workers: must be 0 or more, got -1"),
+])
+def test_cli_misuse_is_one_line_and_exit_2(tmp_path, capsys, args, message):
+    """Bad --stages and --set values are refused when read, in one line, before anything is written."""
+    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "out"), *args]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith(f"intercap run: error: {message}"), err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_session_that_does_not_exist_is_a_short_message(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "none"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert "does not exist" in err and "Traceback" not in err and len(err.splitlines()) <= 5
+
+
+def test_settings_below_their_range_are_refused_from_yaml_too(tmp_path):
+    yaml_file = tmp_path / "c.yaml"
+    yaml_file.write_text("global:\n  window_frames: 0\n")
+    with pytest.raises(ConfigError, match="global.window_frames: must be greater than 0"):
+        load_config(yaml_file)
+    assert load_config(overrides=["run.workers=0", "prepare.pixel_stride=1"]).prepare.pixel_stride == 1
+
+
+def test_an_unexpected_error_is_one_line_with_its_traceback_in_a_log(tmp_path, capsys, monkeypatch):
+    """A bug inside a stage: one line with the error and the log file holding its traceback; -v
+    lets the traceback through."""
+    import intercap.pipeline as pipeline
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("step must be nonzero")
+
+    monkeypatch.setattr(pipeline, "run_pipeline", broken)
+    assert main(["run", str(SAMPLE), "--out", str(tmp_path / "out")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert err.startswith("intercap run: unexpected error: RuntimeError: step must be nonzero (traceback in ")
+    log_file = Path(err.split("traceback in ")[1].split(";")[0])
+    try:
+        assert "Traceback" in log_file.read_text() and "step must be nonzero" in log_file.read_text()
+    finally:
+        log_file.unlink()
+    with pytest.raises(RuntimeError, match="step must be nonzero"):
+        main(["-v", "run", str(SAMPLE), "--out", str(tmp_path / "out")])

@@ -39,16 +39,16 @@ def drift_transform(rotation_deg: float, translation_mm: float, seed: int, pivot
 
 def load_views(session_dir: Path, frames: int):
     """Per camera, its world points of `frames` frames spread over the take, read as prepare reads them
-    (`view_points`: frames seen by fewer than two views left out)."""
+    (`checkable_frames`, `view_points`: frames seen by fewer than two views left out)."""
     from intercap.config import PrepareConfig
     from intercap.geometry.cameras import Cameras
     from intercap.session import Session
-    from intercap.stages.prepare.stage import ViewClouds, spread_frames, view_points
+    from intercap.stages.prepare.stage import ViewClouds, checkable_frames, view_points
 
     session = Session.load(session_dir)
     cameras = Cameras.from_infos(session.cameras)
     clouds = ViewClouds(session, cameras, PrepareConfig())
-    per_view, _ = view_points(session, clouds, spread_frames(session.frame_ids, frames), None, "", False)
+    per_view, _ = view_points(session, clouds, checkable_frames(session, frames), None, "", False)
     return session, cameras.centers.numpy(), per_view
 
 

@@ -4,12 +4,11 @@ Vertices are stored as float32 (what the results arrays hold), faces as int32
 vertex ids with a uchar count, colours (optional) as uchar RGB per vertex."""
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
-from intercap.io.files import atomic_target
+from intercap.io.files import atomic_file
 
 
 def mesh_ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> bytes:
@@ -37,6 +36,5 @@ def mesh_ply_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray |
 def write_mesh_ply(path: str | Path, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray | None = None) -> None:
     """Write a mesh as binary PLY, atomically (a crash never leaves a truncated file)."""
     path = Path(path)
-    tmp = atomic_target(path, ".ply")
-    tmp.write_bytes(mesh_ply_bytes(vertices, faces, colors))
-    os.replace(tmp, path)
+    with atomic_file(path, ".ply") as tmp:
+        tmp.write_bytes(mesh_ply_bytes(vertices, faces, colors))

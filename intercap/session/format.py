@@ -15,7 +15,14 @@ import numpy as np
 import trimesh
 import yaml
 
-from intercap.session.problems import ProblemList, intrinsics_issue, rigid_transform_issue, rotation_issue
+from intercap.session.problems import (
+    MAX_TRANSLATION_M,
+    ProblemList,
+    intrinsics_issue,
+    rigid_transform_issue,
+    rotation_issue,
+    translation_issue,
+)
 
 KINDS = ("color", "depth", "keypoints", "mask_person", "mask_object")
 
@@ -51,9 +58,42 @@ SESSION_KEYS = ("fps", "object", "frames", "contact_frames", "ground", "body")
 
 
 OBJECT_KEYS = ("mesh", "name", "mass_kg", "density_kg_m3", "contact_vertices", "initial_pose")
+# Largest plausible object.mass_kg (kg) and object.density_kg_m3 (kg/m^3; steel is 7,850): beyond, a unit slip
+OBJECT_LIMITS = {"mass_kg": 500.0, "density_kg_m3": 25000.0}
+OBJECT_UNITS = {"mass_kg": ("kilograms", "grams"), "density_kg_m3": ("kg/m^3", "other units")}
 
 
 _FRAME_NAME = re.compile(r"^(\d{6})(\.[^.]+)$")
+
+
+_NUMBER_TEXT = re.compile(r"^[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?$")  # 3e1, 1e-9: YAML 1.1 reads them as strings
+
+
+FPS_RANGE = (1.0, 1000.0)  # frames per second
+
+
+MESH_EXTENT_RANGE_M = (0.01, 3.0)  # the object's largest bounding-box side
+
+
+def as_number(value: Any) -> float | None:
+    """A YAML value where a number is expected, as a float (maybe inf or NaN); None when it is not one.
+    Accepts strings such as `3e1` or `1e-9`, which YAML 1.1 (PyYAML) reads as strings for lack of a dot."""
+    if isinstance(value, bool):
+        return None
+    if isinstance(value, str) and _NUMBER_TEXT.match(value.strip()):
+        value = value.strip()
+    elif not isinstance(value, (int, float, np.integer, np.floating)):
+        return None
+    try:
+        return float(value)
+    except (OverflowError, ValueError):
+        return None
+
+
+def positive_number(value: Any) -> float | None:
+    """`as_number` when it is finite and > 0, else None."""
+    x = as_number(value)
+    return x if x is not None and np.isfinite(x) and x > 0 else None
 
 
 @dataclass
@@ -170,11 +210,12 @@ def parse_fps(cfg: dict, path: Path, out: ProblemList) -> float | None:
     if "fps" not in cfg:
         out.fatal(path, "missing `fps` (frames per second, required)")
         return None
-    fps = cfg["fps"]
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not np.isfinite(fps) or fps <= 0:
-        out.fatal(path, f"`fps` must be a positive number, got {fps!r}")
+    fps = positive_number(cfg["fps"])
+    lo, hi = FPS_RANGE
+    if fps is None or not lo <= fps <= hi:
+        out.fatal(path, f"`fps` must be a positive number of frames per second ({lo:g}-{hi:g}), got {cfg['fps']!r}")
         return None
-    return float(fps)
+    return fps
 
 
 def is_int(x: Any) -> bool:
@@ -206,7 +247,8 @@ def _camera_from_json(entry: Any, i: int, path: Path, names: set, out: ProblemLi
             out.fatal(path, f"{where}: `{key}` must be a positive integer, got {entry[key]!r}")
             ok = False
     if "K" in entry:
-        issue = intrinsics_issue(entry["K"])
+        size_ok = all(is_int(entry.get(key)) and entry[key] > 0 for key in ("width", "height"))
+        issue = intrinsics_issue(entry["K"], *((entry["width"], entry["height"]) if size_ok else ()))
         if issue:
             out.fatal(path, f"{where}: {issue}")
             ok = False
@@ -221,7 +263,7 @@ def _camera_from_json(entry: Any, i: int, path: Path, names: set, out: ProblemLi
         out.fatal(path, f"{where}: `dist` must be a list of 0, 4, 5 or 8 numbers, got {entry.get('dist')!r}")
         ok = False
     if "T_world_from_cam" in entry:
-        issue = rigid_transform_issue(entry["T_world_from_cam"])
+        issue = rigid_transform_issue(entry["T_world_from_cam"], max_translation=MAX_TRANSLATION_M)
         if issue:
             out.fatal(path, f"{where}: T_world_from_cam {issue}")
             ok = False
@@ -339,44 +381,26 @@ def parse_object(root: Path, block: Any, path: Path, out: ProblemList) -> Object
     if not isinstance(mesh_name, str) or not mesh_name:
         out.fatal(path, "`object.mesh` missing: an object block needs its mesh file (e.g. object.ply)")
         return None
-    mesh_path = root / mesh_name
+    mesh_path = session_file(root, mesh_name, "object.mesh", path, out)
+    if mesh_path is None:
+        return None
     obj = ObjectInfo(name=str(block.get("name") or mesh_path.stem), mesh_path=mesh_path)
-    ok = True
+    mesh = _read_object_mesh(mesh_path, out)
+    ok = mesh is not None
+    obj._mesh = mesh
 
-    mesh = None
-    if not mesh_path.is_file():
-        out.fatal(mesh_path, "object mesh missing (named by `object.mesh` in session.yaml)")
-        ok = False
-    else:
-        try:
-            mesh = load_mesh_file(mesh_path)
-        except Exception as exc:  # trimesh raises many kinds on bad files
-            out.fatal(mesh_path, f"object mesh unreadable ({type(exc).__name__}: {exc})")
-            ok = False
-    if mesh is not None:
-        if len(mesh.faces) == 0:
-            out.fatal(mesh_path, "object mesh has no faces (the tracker renders its silhouette)")
-            ok = False
-            mesh = None  # nothing to check contact vertex ids against
-        elif not mesh.is_watertight:
-            out.warn(mesh_path, "object mesh is not watertight; its rendered silhouette and depth may have holes")
-        obj._mesh = mesh
-
-    mass = block.get("mass_kg")
-    if mass is not None:
-        if isinstance(mass, bool) or not isinstance(mass, (int, float)) or not mass > 0:
-            out.fatal(path, f"`object.mass_kg` must be a positive number, got {mass!r}")
-            ok = False
-        else:
-            obj.mass_kg = float(mass)
-
-    density = block.get("density_kg_m3")
-    if density is not None:
-        if isinstance(density, bool) or not isinstance(density, (int, float)) or not density > 0:
-            out.fatal(path, f"`object.density_kg_m3` must be a positive number, got {density!r}")
-            ok = False
-        else:
-            obj.density_kg_m3 = float(density)
+    for key in ("mass_kg", "density_kg_m3"):
+        if block.get(key) is not None:
+            value = positive_number(block[key])
+            if value is None:
+                out.fatal(path, f"`object.{key}` must be a positive finite number, got {block[key]!r}")
+                ok = False
+            elif value > OBJECT_LIMITS[key]:
+                unit, slip = OBJECT_UNITS[key]
+                out.fatal(path, f"`object.{key}` is {value:g}, over {OBJECT_LIMITS[key]:g} for an object a person "
+                          f"handles: is it in {slip}? It is in {unit}")
+                ok = False
+            setattr(obj, key, value)
 
     contacts = block.get("contact_vertices")
     if contacts is not None:
@@ -390,11 +414,69 @@ def parse_object(root: Path, block: Any, path: Path, out: ProblemList) -> Object
     return obj if ok else None
 
 
+def session_file(root: Path, name: str, key: str, yaml_path: Path, out: ProblemList) -> Path | None:
+    """root / name when that file lies inside the session folder, symbolic links resolved; else None,
+    with a problem naming the key: a session reads no file outside its folder."""
+    path = root / name
+    try:
+        resolved = path.resolve()
+        inside = resolved.is_relative_to(root.resolve())
+    except (OSError, RuntimeError):  # a symlink loop
+        resolved, inside = None, False
+    if not inside:
+        link = "" if resolved is None or resolved == Path(os.path.abspath(path)) else f" (a link to {resolved})"
+        out.fatal(yaml_path, f"`{key}` {name!r}{link} points outside the session folder; "
+                  "files named in session.yaml must lie inside it")
+        return None
+    return path
+
+
+def mesh_content_issue(mesh: trimesh.Trimesh) -> str | None:
+    """Why a loaded mesh cannot be the object (no faces, bad vertices or faces, not in metres), or None."""
+    vertices, faces = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    if len(faces) == 0:
+        return "object mesh has no faces (the tracker renders its silhouette)"
+    if not np.isfinite(vertices).all():
+        return f"object mesh has {int((~np.isfinite(vertices).all(axis=1)).sum())} vertex/vertices with NaN or inf"
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        return f"object mesh has face vertex indices out of range (0-{faces.max()} for {len(vertices)} vertices)"
+    extent = float(np.ptp(vertices[np.unique(faces)], axis=0).max())
+    lo, hi = MESH_EXTENT_RANGE_M
+    if extent == 0:
+        return "object mesh is degenerate: all its vertices are equal"
+    if extent > hi:
+        return f"object mesh is {extent:.4g} m across (over {hi:g} m): is the mesh in millimetres? It must be in metres"
+    if extent < lo:
+        return f"object mesh is {extent:.3g} m across (under {lo:g} m): is the mesh in metres?"
+    return None
+
+
+def _read_object_mesh(mesh_path: Path, out: ProblemList) -> trimesh.Trimesh | None:
+    """The object's mesh, or None with a fatal problem when it is missing, unreadable or implausible."""
+    if not mesh_path.is_file():
+        out.fatal(mesh_path, "object mesh missing (named by `object.mesh` in session.yaml)")
+        return None
+    try:
+        mesh = load_mesh_file(mesh_path)
+    except Exception as exc:  # trimesh raises many kinds on bad files
+        out.fatal(mesh_path, f"object mesh unreadable ({type(exc).__name__}: {exc})")
+        return None
+    issue = mesh_content_issue(mesh)
+    if issue is not None:
+        out.fatal(mesh_path, issue)
+        return None
+    if not mesh.is_watertight:
+        out.warn(mesh_path, "object mesh is not watertight; its rendered silhouette and depth may have holes")
+    return mesh
+
+
 def _read_contact_vertices(root: Path, name: Any, mesh: trimesh.Trimesh | None, yaml_path: Path, out: ProblemList):
     if not isinstance(name, str) or not name:
         out.fatal(yaml_path, f"`object.contact_vertices` must name a JSON file, got {name!r}")
         return None
-    path = root / name
+    path = session_file(root, name, "object.contact_vertices", yaml_path, out)
+    if path is None:
+        return None
     if not path.is_file():
         out.fatal(path, "contact vertex file missing (named by `object.contact_vertices`)")
         return None
@@ -432,6 +514,10 @@ def _parse_pose(pose: Any, path: Path, out: ProblemList) -> tuple[np.ndarray, np
             raise ValueError
     except (TypeError, ValueError):
         out.fatal(path, f"`object.initial_pose.t` must be 3 numbers, got {pose['t']!r}")
+        return None
+    issue = translation_issue(t)
+    if issue:
+        out.fatal(path, f"`object.initial_pose.t`: {issue}")
         return None
     return np.asarray(pose["R"], dtype=np.float64), t
 
@@ -488,11 +574,16 @@ def parse_ground(value: Any, path: Path, out: ProblemList):
 
 
 def parse_body(value: Any, path: Path, out: ProblemList) -> str:
+    """The body model's name: `body: {model: NAME}` (or the short `body: NAME`), default anny;
+    checks `body.mass_kg` too."""
     if value is None:
         return "anny"
-    model = value.get("model", "anny") if isinstance(value, dict) else None
+    model = value if isinstance(value, str) else value.get("model", "anny") if isinstance(value, dict) else None
+    model = model.strip() if isinstance(model, str) else model
+    if isinstance(value, dict) and value.get("mass_kg") is not None and positive_number(value["mass_kg"]) is None:
+        out.fatal(path, f"`body.mass_kg` must be a positive finite number, got {value['mass_kg']!r}")
     if model not in BODY_MODELS:
-        got = model if isinstance(value, dict) else value
+        got = value if model is None else model
         out.fatal(path, f"`body.model` must be one of {', '.join(BODY_MODELS)} (body: {{model: anny}}), got {got!r}")
         return "anny"
     return model

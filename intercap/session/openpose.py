@@ -50,3 +50,26 @@ def openpose_to_array(data: Any) -> tuple[np.ndarray, list[str]]:
                 out[start : start + n] = arr.reshape(n, 3)
         start += n
     return out, issues
+
+
+CONFIDENCE_SLACK = 1e-3  # detectors' confidences may exceed 1 by float rounding
+
+
+def drop_implausible_keypoints(kp: np.ndarray, width: int, height: int) -> tuple[np.ndarray, list[str]]:
+    """`kp` (137, 3) with implausible keypoints set to zero (not detected), and what was dropped:
+    non-finite values, confidence outside [0, 1], or a detected point more than an image size
+    outside a width x height image. Confidences a hair above 1 are clipped to 1."""
+    kp = kp.copy()
+    finite = np.isfinite(kp).all(axis=1)
+    conf = np.where(finite, kp[:, 2], 0.0)
+    bad_conf = finite & ((conf < 0) | (conf > 1 + CONFIDENCE_SLACK))
+    x, y = np.where(finite, kp[:, 0], 0.0), np.where(finite, kp[:, 1], 0.0)
+    far = finite & (conf > 0) & ((np.abs(x - width / 2) > 1.5 * width) | (np.abs(y - height / 2) > 1.5 * height))
+    issues = []
+    for mask, what in ((~finite, "NaN or inf values"), (bad_conf, "confidence outside [0, 1]"),
+                       (far & ~bad_conf, f"coordinates far outside the {width}x{height} image")):
+        if mask.any():
+            issues.append(f"{int(mask.sum())} keypoint(s) with {what} ignored (read as not detected)")
+    kp[~finite | bad_conf | far] = 0.0
+    kp[:, 2] = np.minimum(kp[:, 2], 1.0)
+    return kp, issues

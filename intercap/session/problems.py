@@ -14,6 +14,15 @@ ROTATION_TOL = 1e-4  # calibration and initial poses: orthonormality / det toler
 GT_ROTATION_TOL = 1e-3  # ground-truth poses may be stored as float32
 
 
+FOCAL_RANGE = (0.1, 10.0)  # plausible fx, fy as multiples of the image width
+
+
+PRINCIPAL_POINT_MARGIN = 0.25  # cx, cy may lie this fraction of the image size outside it
+
+
+MAX_TRANSLATION_M = 100.0  # camera and object positions farther from the world origin are implausible
+
+
 @dataclass(frozen=True)
 class Problem:
     """One thing wrong with a session: which file (relative to the session root) and what."""
@@ -64,8 +73,9 @@ class ProblemList(list):
         return any(p.fatal for p in self)
 
 
-def intrinsics_issue(K: Any) -> str | None:
-    """Why K is not a pinhole matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0 (None if it is)."""
+def intrinsics_issue(K: Any, width: int | None = None, height: int | None = None) -> str | None:
+    """Why K is not a pinhole matrix [[fx,0,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0 (None if it is);
+    given the image size, also why its focal lengths or principal point are implausible for it."""
     try:
         K = np.asarray(K, dtype=np.float64)
     except (TypeError, ValueError):
@@ -79,6 +89,23 @@ def intrinsics_issue(K: Any) -> str | None:
         return "K is not of the form [[fx,0,cx],[0,fy,cy],[0,0,1]]"
     if K[0, 0] <= 0 or K[1, 1] <= 0:
         return f"K has non-positive focal length (fx={K[0, 0]:g}, fy={K[1, 1]:g})"
+    if width is None or height is None:
+        return None
+    return _intrinsics_plausibility_issue(K, width, height)
+
+
+def _intrinsics_plausibility_issue(K: np.ndarray, width: int, height: int) -> str | None:
+    """Why a well-formed K does not fit a width x height image: focal lengths outside FOCAL_RANGE
+    times the width, or the principal point outside the image (with PRINCIPAL_POINT_MARGIN)."""
+    lo, hi = FOCAL_RANGE[0] * width, FOCAL_RANGE[1] * width
+    for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
+        if not lo <= f <= hi:
+            return (f"K has implausible focal length {name}={f:g} px for an image {width} px wide "
+                    f"(expected {lo:g}-{hi:g} px)")
+    for name, c, size in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
+        margin = PRINCIPAL_POINT_MARGIN * size
+        if not -margin <= c <= size + margin:
+            return f"K has principal point {name}={c:g} px outside the image (0-{size} px)"
     return None
 
 
@@ -101,8 +128,17 @@ def rotation_issue(R: Any, tol: float = ROTATION_TOL) -> str | None:
     return None
 
 
-def rigid_transform_issue(T: Any, tol: float = ROTATION_TOL) -> str | None:
-    """Why T is not a 4x4 rigid transform [[R, t], [0, 0, 0, 1]], or None."""
+def translation_issue(t: np.ndarray, limit: float = MAX_TRANSLATION_M) -> str | None:
+    """Why a finite translation (metres) is implausibly far from the world origin, or None."""
+    dist = float(np.linalg.norm(t))
+    if dist > limit:
+        return f"translation is {dist:.3g} m from the world origin (over {limit:g} m): is it in millimetres?"
+    return None
+
+
+def rigid_transform_issue(T: Any, tol: float = ROTATION_TOL, max_translation: float | None = None) -> str | None:
+    """Why T is not a 4x4 rigid transform [[R, t], [0, 0, 0, 1]] (with |t| <= max_translation
+    metres when given), or None."""
     try:
         T = np.asarray(T, dtype=np.float64)
     except (TypeError, ValueError):
@@ -114,7 +150,9 @@ def rigid_transform_issue(T: Any, tol: float = ROTATION_TOL) -> str | None:
     if np.abs(T[3] - np.array([0.0, 0.0, 0.0, 1.0])).max() > 1e-9:
         return f"last row is {T[3].tolist()}, not [0, 0, 0, 1]"
     issue = rotation_issue(T[:3, :3], tol)
-    return None if issue is None else f"rotation part {issue}"
+    if issue is not None:
+        return f"rotation part {issue}"
+    return None if max_translation is None else translation_issue(T[:3, 3], max_translation)
 
 
 def format_frame_list(ids: Iterable[int], limit: int = 20) -> str:

@@ -41,7 +41,7 @@ from intercap.session.format import (
     is_int,
     size_issue,
 )
-from intercap.session.openpose import openpose_to_array
+from intercap.session.openpose import drop_implausible_keypoints, openpose_to_array
 from intercap.session.problems import Problem, ProblemList, SessionError, format_frame_list
 
 IO_WORKERS = max(1, min(8, (os.cpu_count() or 2) * 2))
@@ -75,6 +75,15 @@ def in_threads(fn, items, threads: int | None = None) -> list:
         return [fn(x) for x in items]
     with ThreadPoolExecutor(max_workers=threads) as pool:
         return list(pool.map(fn, items))
+
+
+def mask_to_bool(img: np.ndarray) -> np.ndarray:
+    """(H, W) bool of a decoded mask (`Session.read_mask`); a bool one (the frame cache's) as it is."""
+    if img.dtype == bool:
+        return img
+    if img.dtype == np.uint16 and img.max(initial=0) > 255:
+        return img > 32767
+    return img > 127
 
 
 class Session:
@@ -231,11 +240,14 @@ class Session:
         return None if img is None else np.divide(img, np.float32(1000.0), dtype=np.float32)
 
     def read_mask(self, cam: str | int, frame_id: int, kind: str) -> np.ndarray | None:
-        """(H, W) bool (pixel > 127) for kind 'person' or 'object'; None when absent/unreadable."""
+        """(H, W) bool (pixel > 127) for kind 'person' or 'object'; None when absent/unreadable.
+        A 16-bit mask reads as its 8-bit counterpart: > 127 when it holds values up to 255 (0/255
+        written as uint16), else > 32767 (0/65535)."""
         if kind not in ("person", "object"):
             raise ValueError(f"mask kind must be 'person' or 'object', got {kind!r}")
-        img = self._read_cached(self._cam_index(cam), f"mask_{kind}", frame_id, cv2.IMREAD_GRAYSCALE)
-        return None if img is None else img if img.dtype == bool else img > 127
+        flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH  # plain IMREAD_GRAYSCALE reads uint16 as value >> 8
+        img = self._read_cached(self._cam_index(cam), f"mask_{kind}", frame_id, flags)
+        return None if img is None else mask_to_bool(img)
 
     def read_keypoints(self, cam: str | int, frame_id: int) -> np.ndarray | None:
         """(137, 3) float32 [x, y, conf] of the first person (BODY_25, left hand, right hand, face);
@@ -248,6 +260,9 @@ class Session:
         except (OSError, UnicodeDecodeError, ValueError) as exc:
             self._drop(path, f"unreadable keypoints: {exc}; treated as a dropped frame")
             return None
+        camera = self.cameras[self._cam_index(cam)]
+        kp, implausible = drop_implausible_keypoints(kp, camera.width, camera.height)
+        issues = issues + implausible
         if issues:
             problem = Problem(ProblemList(self.root).rel(path), "; ".join(issues), False)
             with self._lock:

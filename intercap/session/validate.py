@@ -28,11 +28,14 @@ from intercap.session.format import (
     scan_camera,
     size_issue,
 )
-from intercap.session.openpose import NUM_KEYPOINTS_3D, openpose_to_array
+from intercap.session.openpose import NUM_KEYPOINTS_3D, drop_implausible_keypoints, openpose_to_array
 from intercap.session.problems import GT_ROTATION_TOL, Problem, ProblemList, format_frame_list, rotation_issue
 from intercap.session.session import IO_WORKERS, Session
 
-_FIRST_FRAME_TRIES = 5  # load: how many leading frames to try when the first ones do not decode
+_FIRST_FRAME_TRIES = 5  # load: how many leading frames to try when the first ones do not decode (or hold no depth)
+
+
+DEPTH_MEDIAN_RANGE_M = (0.2, 10.0)  # plausible median of a view's measured depth
 
 
 class _FileIssue(NamedTuple):
@@ -41,14 +44,33 @@ class _FileIssue(NamedTuple):
     dropped: bool  # the file cannot be used: the frame counts as dropped for this view
 
 
+_EMPTY_DEPTH = _FileIssue("", False, False)  # a usable depth frame without a single measurement (all 0)
+
+
+def depth_units_issue(depth_mm: np.ndarray) -> str | None:
+    """Why a depth frame's median measured depth is implausible (depth not in millimetres), or None."""
+    valid = depth_mm[depth_mm > 0]
+    if not valid.size:
+        return None
+    median = float(np.median(valid)) / 1000.0
+    lo, hi = DEPTH_MEDIAN_RANGE_M
+    if lo <= median <= hi:
+        return None
+    guess = "was depth written in metres?" if median < lo else "was it written in units finer than millimetres?"
+    return (f"median depth is {median:.3g} m, outside the plausible {lo:g}-{hi:g} m: depth PNGs hold uint16 "
+            f"millimetres; {guess}")
+
+
 def _check_frame_file(kind: str, path: Path, cam: CameraInfo | None) -> _FileIssue | None:
     """Decode one frame file and say what is wrong with it, or None if it is usable."""
     if kind == "keypoints":
         try:
             data = json.loads(path.read_text())
-            _, issues = openpose_to_array(data)
+            kp, issues = openpose_to_array(data)
         except (OSError, UnicodeDecodeError, ValueError) as exc:
             return _FileIssue(f"unreadable keypoints: {exc}; treated as a dropped frame", False, True)
+        if cam is not None:
+            issues += drop_implausible_keypoints(kp, cam.width, cam.height)[1]
         return _FileIssue("; ".join(issues), False, False) if issues else None
     flags = cv2.IMREAD_COLOR if kind == "color" else cv2.IMREAD_UNCHANGED
     img, reason = decode_image(path, flags)
@@ -62,6 +84,8 @@ def _check_frame_file(kind: str, path: Path, cam: CameraInfo | None) -> _FileIss
         issue = size_issue(img, cam)
         if issue is not None:
             return _FileIssue(issue, True, True)
+    if kind == "depth" and not img.any():
+        return _EMPTY_DEPTH
     return None
 
 
@@ -143,7 +167,11 @@ def _check_ground_truth(root: Path, T: int | None, has_object: bool, out: Proble
         if z is not None:
             if not has_object:
                 out.warn(path, "object poses given but session.yaml has no object block")
-            R, t = (z["R"] if "R" in z.files else None), (z["t"] if "t" in z.files else None)
+            try:
+                R, t = (z["R"] if "R" in z.files else None), (z["t"] if "t" in z.files else None)
+            except ValueError as exc:  # e.g. object arrays, which need pickle
+                out.fatal(path, f"unreadable arrays: {exc}")
+                return True
             if R is None or t is None:
                 out.fatal(path, "must hold arrays `R` (T, 3, 3) and `t` (T, 3)")
             elif R.ndim != 3 or R.shape[1:] != (3, 3) or t.shape != (R.shape[0], 3):
@@ -153,6 +181,9 @@ def _check_ground_truth(root: Path, T: int | None, has_object: bool, out: Proble
                 bad = [i for i in range(len(R)) if rotation_issue(R[i], GT_ROTATION_TOL)]
                 if bad:
                     out.fatal(path, f"R is not a rotation in {len(bad)} frame(s) (rows {format_frame_list(bad)})")
+                moved = np.flatnonzero(~np.isfinite(t).all(1))
+                if len(moved):
+                    out.fatal(path, f"t is NaN or inf in {len(moved)} frame(s) (rows {format_frame_list(moved.tolist())})")
     if present["contact.npy"]:
         c = load("contact.npy", mmap=False)
         if c is not None:
@@ -173,13 +204,18 @@ def _check_ground_truth(root: Path, T: int | None, has_object: bool, out: Proble
 def _check_first_frames(
     cams: list[CameraInfo | None], files: list[dict], frame_ids: np.ndarray | None, bad: set, out: ProblemList
 ) -> None:
-    """load's image check: the first decodable colour and depth frame of each camera (size, depth dtype)."""
+    """load's image check: the first decodable colour and depth frame of each camera (size, depth dtype,
+    depth units); a camera whose first depth frames hold no measurement is warned about, and when
+    every camera's do, that is fatal."""
+    empty_views = []
+    depth_views = 0
     for cam, cam_files in zip(cams, files):
         for kind in ("color", "depth"):
             have = cam_files[kind]
             if not have:
                 continue
             ids = sorted(have) if frame_ids is None else [int(i) for i in frame_ids if int(i) in have]
+            empty = []
             for idx in ids[:_FIRST_FRAME_TRIES]:
                 path = have[idx]
                 flags = cv2.IMREAD_COLOR if kind == "color" else cv2.IMREAD_UNCHANGED
@@ -188,18 +224,46 @@ def _check_first_frames(
                     out.warn(path, reason)
                     bad.add(path)
                     continue
-                if kind == "depth":
-                    issue = depth_format_issue(img)
-                    if issue:
-                        out.fatal(path, issue + " (first depth frame of this camera: its depth is taken to be "
-                                  "written in the wrong format)")
-                        bad.add(path)
-                if cam is not None:
-                    issue = size_issue(img, cam)
-                    if issue:
-                        out.fatal(path, issue)
-                        bad.add(path)
+                if _first_frame_issues(kind, path, img, cam, bad, out) == "empty":
+                    empty.append(path)
+                    continue  # look on for a frame with measurements to check the units on
                 break
+            else:
+                if empty:
+                    empty_views.append((empty[0].parent, len(empty)))
+            depth_views += kind == "depth" and bool(ids)
+    if empty_views and len(empty_views) == depth_views:
+        folders = ", ".join(out.rel(folder) for folder, _ in empty_views)
+        out.fatal(out.root, f"no depth measurement in the first frames of every camera ({folders}): every pixel "
+                  "is 0 (0 = no measurement), so there is nothing to fit to")
+        return
+    for folder, n in empty_views:
+        out.warn(folder, f"no depth measurement in the first {n} frame(s): every pixel is 0 (0 = no measurement)")
+
+
+def _first_frame_issues(kind: str, path: Path, img: np.ndarray, cam: CameraInfo | None, bad: set,
+                        out: ProblemList) -> str | None:
+    """Report what is wrong with a camera's first decoded frame; "empty" for a depth frame with no
+    measurement (the caller looks at the next one)."""
+    if kind == "depth":
+        issue = depth_format_issue(img)
+        if issue:
+            out.fatal(path, issue + " (first depth frame of this camera: its depth is taken to be "
+                      "written in the wrong format)")
+            bad.add(path)
+    if cam is not None:
+        issue = size_issue(img, cam)
+        if issue:
+            out.fatal(path, issue)
+            bad.add(path)
+    if kind != "depth" or path in bad:
+        return None
+    if not img.any():
+        return "empty"
+    issue = depth_units_issue(img)
+    if issue:
+        out.fatal(path, issue)
+    return None
 
 
 def _check_all_frames(
@@ -219,18 +283,39 @@ def _check_all_frames(
                     jobs.append((kind, path, cam))
     with ThreadPoolExecutor(max_workers=IO_WORKERS) as pool:
         results = list(pool.map(lambda job: _check_frame_file(*job), jobs))
+    empty: dict[Path, list[int]] = {}  # depth folder -> frames without a measurement
+    alike: dict[tuple, list[Path]] = {}  # (camera folder, message, fatal) -> the files it concerns
     for (_, path, _), issue in zip(jobs, results):
+        if issue is _EMPTY_DEPTH:
+            empty.setdefault(path.parent, []).append(int(path.stem))
+            continue
         if issue is None:
             continue
-        (out.fatal if issue.fatal else out.warn)(path, issue.message)
+        camera = out.root / Path(out.rel(path)).parts[0]
+        alike.setdefault((camera, issue.message, issue.fatal), []).append(path)
         if issue.dropped:
             bad.add(path)
+    for (camera, message, fatal), paths in alike.items():  # one line per camera and problem, not per file
+        said = [p for p in out if p.message == message and p.path.split("/")[0] == out.rel(camera)]
+        for p in said:  # the first-frame check's line for the same problem joins this one
+            out.remove(p)
+        count = len(paths) + len(said)
+        report = out.fatal if fatal else out.warn
+        if count == 1:
+            report(paths[0], message)
+        else:
+            folders = sorted({out.rel(p.parent) for p in paths})
+            report(camera, f"{message} ({count} files in {', '.join(folders)})")
     for name, cam_files in zip(names, files):
         for kind in ("color", "depth"):
             have = cam_files[kind]
             in_range = [have[int(i)] for i in frame_ids if have and int(i) in have]
-            if in_range and all(p in bad for p in in_range):
+            stated = any(p.fatal and p.path.split("/")[0] == name for p in out)  # why is said already
+            if in_range and all(p in bad for p in in_range) and not stated:
                 out.fatal(out.root / name / KIND_DIRS[kind], f"no usable {kind} frame: every file is unreadable")
+    for folder, ids in empty.items():
+        out.warn(folder, f"{len(ids)} depth frame(s) without a single measurement (every pixel 0): "
+                 + format_frame_list(ids))
 
 
 def inspect_session(root: Path, deep: bool) -> tuple[Session | None, list[Problem]]:

@@ -341,12 +341,10 @@ def write_behave(session, res: dict, out_dir: Path, frame_name: str = "world", p
 
 
 def _write_pickle(path: Path, data: dict) -> None:
-    from intercap.io.files import atomic_target
+    from intercap.io.files import atomic_file
 
-    tmp = atomic_target(path, ".pkl")
-    with open(tmp, "wb") as f:
+    with atomic_file(path, ".pkl") as tmp, open(tmp, "wb") as f:
         pickle.dump(data, f, protocol=4)
-    tmp.replace(path)
 
 
 # -- the stage --------------------------------------------------------------------------------

@@ -39,6 +39,7 @@ from intercap.dynamics import mass as mass_model
 from intercap.dynamics import newton_euler as ne
 from intercap.dynamics import plausibility
 from intercap.io.files import read_json, save_npz
+from intercap.session.format import positive_number
 
 log = logging.getLogger(__name__)
 
@@ -81,9 +82,10 @@ def session_body_mass(session) -> float | None:
     value = body.get("mass_kg") if isinstance(body, dict) else None
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+    mass = positive_number(value)  # as validate reads it: `7e1` is a number, inf is not
+    if mass is None:
         raise PhysicsError(f"{session.root / 'session.yaml'}: `body.mass_kg` must be a positive number, got {value!r}")
-    return float(value)
+    return mass
 
 
 def _require(path: Path, stage: str) -> Path:

@@ -49,6 +49,19 @@ def spread_frames(frame_ids: np.ndarray, count: int) -> np.ndarray:
     return np.asarray(frame_ids)[np.round(np.linspace(0, len(frame_ids) - 1, count)).astype(int)]
 
 
+def checkable_frames(session, count: int) -> np.ndarray:
+    """`count` frame ids spread over the frames every view has depth of (when at least `count` have;
+    else over those the most views have, at least two): a pair whose view dropped some of the checked
+    frames would be judged on fewer frames than the rest, where ICP walks off on an exact rig. All
+    frames when every view has them all (the frames `spread_frames` picks)."""
+    frame_ids = np.asarray(session.frame_ids)
+    views = session.availability()["depth"].sum(axis=0)  # (T,) views with depth, per frame
+    for least in range(int(views.max(initial=0)), 1, -1):
+        if (views >= least).sum() >= count:
+            return spread_frames(frame_ids[views >= least], count)
+    return spread_frames(frame_ids[views >= 2] if (views >= 2).any() else frame_ids, count)
+
+
 class ViewClouds:
     """World point clouds of one frame's views, with each camera's undistorted
     pixel rays computed once per run (undistortion is the costly part)."""
@@ -169,14 +182,42 @@ def check_rig(session, clouds: ViewClouds, checked, stage_dir: Path, pcfg, progr
                                  "prepare: calibration check", progress)
     if not used:
         return [], 0
+    per_view, used = with_every_view(session, clouds, per_view, checked, progress)
     return check_views(per_view, session.camera_names, clouds.cameras.centers.numpy(), pcfg), used
+
+
+def complete(per_view: list) -> list[int]:
+    """The frames (indices into each view's list) where every view has points."""
+    return [k for k in range(len(per_view[0])) if all(len(view[k]) for view in per_view)]
+
+
+def with_every_view(session, clouds: ViewClouds, per_view: list, checked, progress: bool) -> tuple[list, int]:
+    """The check's frames with every view's points: a frame where a view read nothing (a depth file that
+    is there but unreadable, a view that saw nothing) is replaced by other frames every view has, so no
+    pair is judged on fewer frames than the rest (ICP then walks off on an exact rig). As given when every
+    frame is complete, or when no other frame is."""
+    keep = complete(per_view)
+    if len(keep) == len(per_view[0]):
+        return per_view, len(keep)
+    others = np.setdiff1d(checkable_frames(session, len(session.frame_ids)), checked)
+    extra, _ = view_points(session, clouds, spread_frames(others, min(len(others), 3 * len(checked))), None,
+                           "prepare: calibration check (frames every view has)", progress) if len(others) else ([], 0)
+    picked = [[view[k] for k in keep] for view in per_view]
+    for k in complete(extra) if extra else []:
+        if len(picked[0]) >= len(checked):
+            break
+        for c, view in enumerate(extra):
+            picked[c].append(view[k])
+    if not picked[0]:
+        return per_view, len(per_view[0])
+    return picked, len(picked[0])
 
 
 def refine_cameras(session, clouds: ViewClouds, stage_dir: Path, pcfg, progress: bool) -> dict:
     """Correct the cameras' poses so all views agree (`refine_rig`), in `session` and in
     OUT/prepare/calibration_refined.json (the session's calibration with the new poses, usable as a
     calibration.json); the figures for metrics.json."""
-    frames = spread_frames(session.frame_ids, pcfg.calib_refine_frames)
+    frames = checkable_frames(session, pcfg.calib_refine_frames)
     per_view, used = view_points(session, clouds, frames, None, "prepare: refining the calibration", progress)
     if not used:
         return {"calibration_refined": False}
@@ -228,7 +269,7 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     stage_dir = Path(out_dir) / "prepare"
     (stage_dir / REFINED_CALIBRATION.name).unlink(missing_ok=True)  # a killed earlier run's; decided again below
     clouds = ViewClouds(session, Cameras.from_infos(session.cameras, dtype=torch.float32), pcfg)
-    checked = spread_frames(session.frame_ids, pcfg.calib_frames)
+    checked = checkable_frames(session, pcfg.calib_frames)
     results, used_frames = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
     pairs, suspects = report_check(results, used_frames, pcfg)
     check = {"frames": [int(f) for f in checked], "pairs": pairs, **check_thresholds(pcfg),

@@ -635,6 +635,32 @@ def unchecked_cameras(results: list[PairAgreement]) -> list[str]:
     return [n for n in names if n not in judged]
 
 
+def isolated_cameras(results: list[PairAgreement]) -> list[str]:
+    """Cameras of a rig of three or more whose depth meets no neighbour's (no point within the check's
+    distance in any of their pairs) while other pairs do overlap: every camera of a capture rig sees the
+    scene the others see, so such a pose is wrong (inverted, another rig's, in other units), not
+    merely unchecked. Greedily the camera in the most such pairs, as `suspect_cameras`."""
+    names = dict.fromkeys(n for r in results for n in (r.cam_a, r.cam_b))
+    if len(names) < 3 or not any(r.overlap_points > 0 for r in results):
+        return []
+    empty = [(r.cam_a, r.cam_b) for r in results if r.overlap_points == 0]
+    met = {n for r in results if r.overlap_points > 0 for n in (r.cam_a, r.cam_b)}
+    isolated = []
+    while empty:
+        counts: dict[str, int] = {}
+        for pair in empty:
+            for cam in pair:
+                if cam not in met:
+                    counts[cam] = counts.get(cam, 0) + 1
+        if not counts:
+            break
+        best = max(counts.values())
+        top = sorted(c for c, k in counts.items() if k == best)[0]
+        isolated.append(top)
+        empty = [pair for pair in empty if top not in pair]
+    return isolated
+
+
 def suspect_cameras(results: list[PairAgreement]) -> list[str]:
     """Cameras that explain the flagged pairs: greedily the camera in the most flagged pairs
     (ties named together, "a or b", when nothing tells them apart), until every flagged pair

@@ -20,14 +20,13 @@ import glob
 import io
 import logging
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 from intercap.config import Config
-from intercap.io.files import read_json
+from intercap.io.files import read_json, write_text
 from intercap.parallel import on_gpu
 
 log = logging.getLogger(__name__)
@@ -283,11 +282,8 @@ def summary_csv(rows: list[SessionResult]) -> str:
 
 
 def write_summary(rows: list[SessionResult], path: Path) -> None:
-    """ROOT/summary.csv, written atomically."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".csv")
-    with os.fdopen(fd, "w") as f:
-        f.write(summary_csv(rows))
-    os.replace(tmp, path)
+    """ROOT/summary.csv, written atomically (no temp file left on a failure; the user's umask)."""
+    write_text(path, summary_csv(rows))
 
 
 def format_summary(rows: list[SessionResult]) -> str:

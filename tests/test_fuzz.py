@@ -14,13 +14,11 @@ from tools import fuzz_inputs as fuzz
 CASES = fuzz.all_cases()
 
 # Wrong calibrations that are plausible one camera at a time: validate cannot tell them, and the
-# calibration check does not flag them yet (a view whose depth meets no other view is only listed as
-# not checked). Strict: each fails the suite once it is caught, so the mark must then go.
+# calibration check does not flag them yet (too little overlap to judge the view). Strict: each fails the suite once it is caught, so the mark must then go.
 NOT_CAUGHT_YET = {
     "K focal and centre swapped": "fx = 0.5 x width and cx inside the image are plausible alone",
     "K of twice the resolution": "the principal point stays within the image's margin",
     "K of twice the resolution (run)": "prepare's check finds too little overlap to judge that view",
-    "camera pose inverted": "prepare lists the camera as not checked (a warning), it does not flag it",
 }
 
 

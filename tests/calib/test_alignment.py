@@ -299,3 +299,20 @@ def test_a_view_that_shares_only_part_of_the_person_is_not_judged(tmp_path):
     for r in exact:
         assert r.judged == ("cam1" not in (r.cam_a, r.cam_b)), (r.cam_a, r.cam_b, r.blocks)
     assert unchecked_cameras(exact) == ["cam1"]
+
+
+def test_a_camera_whose_depth_meets_no_other_view_is_suspected():
+    """A pose that puts a camera's depth where no neighbour's is (an inverted T_world_from_cam) is named;
+    a camera merely without a judged pair, or a two-view rig without overlap, is not."""
+    from types import SimpleNamespace
+
+    from intercap.calib.alignment import isolated_cameras
+
+    def pair(a, b, overlap):
+        return SimpleNamespace(cam_a=a, cam_b=b, overlap_points=overlap)
+
+    ring = [pair("cam3", "cam0", 21169), pair("cam0", "cam2", 0), pair("cam2", "cam1", 0)]
+    assert isolated_cameras(ring) == ["cam2"]
+    assert isolated_cameras([pair("cam0", "cam1", 500), pair("cam1", "cam2", 300), pair("cam2", "cam0", 40)]) == []
+    assert isolated_cameras([pair("cam0", "cam1", 0)]) == []  # two views: nothing to tell which is off
+    assert isolated_cameras([pair("cam0", "cam1", 0), pair("cam1", "cam2", 0)]) == []  # nothing overlaps at all

@@ -24,6 +24,7 @@ from tqdm import tqdm
 from intercap.calib.alignment import (
     check_calibration,
     format_agreement,
+    isolated_cameras,
     refine_rig,
     suspect_cameras,
     unchecked_cameras,
@@ -174,16 +175,19 @@ def view_points(session, clouds: ViewClouds, frame_ids, stage_dir: Path | None, 
     return per_view, used
 
 
-def check_rig(session, clouds: ViewClouds, checked, stage_dir: Path, pcfg, progress: bool) -> tuple[list, int]:
-    """The calibration check on the `checked` frames (their clouds saved): per-pair agreements, frames used.
+def check_rig(session, clouds: ViewClouds, checked, stage_dir: Path, pcfg,
+              progress: bool) -> tuple[list, int, list[str]]:
+    """The calibration check on the `checked` frames (their clouds saved): per-pair agreements, frames used,
+    and the cameras without a single depth point in them.
     Frames are matched only with themselves (the person moves), and the person and object in several
     poses constrain what the floor leaves free."""
     per_view, used = view_points(session, clouds, checked, stage_dir if pcfg.save_clouds else None,
                                  "prepare: calibration check", progress)
     if not used:
-        return [], 0
+        return [], 0, []
     per_view, used = with_every_view(session, clouds, per_view, checked, progress)
-    return check_views(per_view, session.camera_names, clouds.cameras.centers.numpy(), pcfg), used
+    blind = [name for name, view in zip(session.camera_names, per_view) if not any(len(f) for f in view)]
+    return check_views(per_view, session.camera_names, clouds.cameras.centers.numpy(), pcfg), used, blind
 
 
 def complete(per_view: list) -> list[int]:
@@ -243,10 +247,17 @@ def refine_cameras(session, clouds: ViewClouds, stage_dir: Path, pcfg, progress:
             "calibration_refined_max_deg": float(result.turned_deg.max())}
 
 
-def report_check(results: list, used_frames: int, pcfg) -> tuple[list[dict], list[str]]:
-    """Log the check's table and warnings; its JSON rows and the suspect cameras."""
+def report_check(results: list, used_frames: int, blind: list[str], pcfg) -> tuple[list[dict], list[str]]:
+    """Log the check's table and warnings; its JSON rows and the suspect cameras (`blind`: cameras without
+    depth in the checked frames, which meet no other view for want of points, not for a wrong pose)."""
     pairs = agreement_rows(results, used_frames)
+    isolated = [c for c in isolated_cameras(results) if c not in blind]
     suspects = suspect_cameras(results)
+    suspects += [c for c in isolated if c not in suspects]
+    for camera in isolated:
+        log.warning("camera %s: its depth meets no other view's (nothing within %.0f cm of its neighbours' points): "
+                    "its pose in calibration.json looks wrong (inverted? another rig's? millimetres?)",
+                    camera, 100 * pcfg.icp_max_distance_m)
     if results:
         log.info("calibration check (%d frames)\n%s", used_frames, format_agreement(results, **check_thresholds(pcfg)))
     for p in pairs:
@@ -270,11 +281,11 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     (stage_dir / REFINED_CALIBRATION.name).unlink(missing_ok=True)  # a killed earlier run's; decided again below
     clouds = ViewClouds(session, Cameras.from_infos(session.cameras, dtype=torch.float32), pcfg)
     checked = checkable_frames(session, pcfg.calib_frames)
-    results, used_frames = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
-    pairs, suspects = report_check(results, used_frames, pcfg)
+    results, used_frames, blind = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
+    pairs, suspects = report_check(results, used_frames, blind, pcfg)
     check = {"frames": [int(f) for f in checked], "pairs": pairs, **check_thresholds(pcfg),
              "flagged": [p for p in pairs if p["flagged"]], "suspect_cameras": suspects,
-             "unchecked_cameras": unchecked_cameras(results)}
+             "unchecked_cameras": [c for c in unchecked_cameras(results) if c not in suspects]}
     if check["unchecked_cameras"]:
         log.warning("calibration of camera(s) %s not checked: too little surface shared with the other views "
                     "(a camera close in, the floor out of its image); used as given",
@@ -285,8 +296,8 @@ def run(session, cfg: Config, out_dir: Path, progress: bool = True) -> dict:
     if refined["calibration_refined"]:  # the check again, and everything after it, with the refined poses
         clouds = ViewClouds(session, Cameras.from_infos(session.cameras, dtype=torch.float32), pcfg)
         log.info("the calibration check again, with the refined poses")
-        after, _ = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
-        after_pairs, after_suspects = report_check(after, used_frames, pcfg)
+        after, _, blind = check_rig(session, clouds, checked, stage_dir, pcfg, progress)
+        after_pairs, after_suspects = report_check(after, used_frames, blind, pcfg)
         check["after_refinement"] = {"pairs": after_pairs, "flagged": [p for p in after_pairs if p["flagged"]],
                                      "suspect_cameras": after_suspects}
     write_json(stage_dir / "calibration_check.json", check)

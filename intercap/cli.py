@@ -5,6 +5,7 @@ import argparse
 import logging
 import os
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 
@@ -52,12 +53,26 @@ def _cmd_eval(args) -> int:
     from intercap.evaluation.evaluate import evaluate
     from intercap.evaluation.table import format_table, write_json
 
-    result = evaluate(args.out, args.gt)
-    print(format_table(result))
-    json_path = Path(args.json) if args.json else Path(args.out) / "eval.json"
-    write_json(result, json_path)
+    with holding(args.out):  # not while a run writes the results it reads
+        result = evaluate(args.out, args.gt)
+        print(format_table(result))
+        json_path = Path(args.json) if args.json else Path(args.out) / "eval.json"
+        write_json(result, json_path)
     print(f"written {json_path}")
     return 0
+
+
+@contextmanager
+def holding(out_dir):
+    """The results folder's lock (`pipeline.results_lock`) while a command reads and writes in it, when
+    it is a folder (a missing one is the command's own error to report)."""
+    from intercap.pipeline import results_lock
+
+    if not Path(out_dir).is_dir():
+        yield
+        return
+    with results_lock(Path(out_dir)):
+        yield
 
 
 def _cmd_run_many(args) -> int:
@@ -93,7 +108,8 @@ def _cmd_view(args) -> int:
 def _cmd_report(args) -> int:
     from intercap.evaluation.report import write_report
 
-    path = write_report(args.out, session=args.session, gt=args.gt, progress=not args.quiet)
+    with holding(args.out):
+        path = write_report(args.out, session=args.session, gt=args.gt, progress=not args.quiet)
     print(f"report written to {path.resolve()}")
     return 0
 

@@ -182,3 +182,16 @@ def test_out_being_a_file_or_under_one_is_one_line(tiny_session, tmp_path, capsy
     code, err = run_cli(tiny_session, tmp_path / "file" / "out", capsys)
     assert code == 1 and err == f"intercap run: error: {tmp_path / 'file' / 'out'}: Not a directory"
     assert (tmp_path / "file").read_text() == "x"
+
+
+def test_eval_and_report_wait_for_no_run(tmp_path, capsys):
+    """`intercap eval` and `intercap report` on a folder a run holds exit at once naming the run, and
+    write nothing there."""
+    out = tmp_path / "out"
+    out.mkdir()
+    with results_lock(out):
+        for argv in (["eval", str(out), "--gt", str(tmp_path)], ["report", str(out)]):
+            code = main(argv)
+            err = capsys.readouterr().err.strip()
+            assert code == 2 and len(err.splitlines()) == 1 and f"in use by pid {os.getpid()} on " in err
+    assert sorted(p.name for p in out.iterdir()) == [".lock"]

@@ -40,19 +40,15 @@ class Chunk:
 
 @dataclass(frozen=True)
 class Checkpoint:
-    """A chunk's saved progress: OUT/<stage>/<kind>_LO_HI.npz, arrays by name, written atomically
-    (a run killed while it writes keeps the previous one). `kind` names other resumable pieces of
-    a stage (the object stage's seam tracks)."""
+    """A chunk's saved progress: OUT/<stage>/progress_LO_HI.npz (or another file a stage resumes from,
+    as the object stage's seam tracks), arrays by name, written atomically (a run killed while it
+    writes keeps the previous one)."""
 
     path: Path
 
     @classmethod
-    def of(cls, out_dir: Path, stage: str, lo: int, hi: int, kind: str = "progress") -> "Checkpoint":
-        return cls(Path(out_dir) / stage / f"{kind}_{lo:06d}_{hi:06d}.npz")
-
-    @classmethod
     def of_chunk(cls, out_dir: Path, stage: str, chunk: Chunk) -> "Checkpoint":
-        return cls.of(out_dir, stage, chunk.lo, chunk.hi)
+        return cls(Path(out_dir) / stage / f"progress_{chunk.lo:06d}_{chunk.hi:06d}.npz")
 
     def exists(self) -> bool:
         return self.path.exists()
@@ -66,9 +62,6 @@ class Checkpoint:
 
     def save(self, **arrays) -> None:
         save_npz(self.path, **arrays)
-
-    def remove(self) -> None:
-        self.path.unlink(missing_ok=True)
 
 
 def fit_in_chunks(fit: Callable, stitch: Callable, session, cfg, out_dir: Path, groups: list, desc: str,

@@ -301,7 +301,7 @@ def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) 
     session = open_session(session, out_dir)
     torch.manual_seed(cfg.object.seed)
     tracker = ObjectTracker(session, cfg.object, session.object.load_mesh(), device=cfg.run.device)
-    searches = [track_steps(tracker, session.frame_ids[c.lo:c.hi], Checkpoint.of(out_dir, "object", c.lo, c.hi),
+    searches = [track_steps(tracker, session.frame_ids[c.lo:c.hi], Checkpoint.of_chunk(out_dir, "object", c),
                             session.object.initial_pose if c.lo == 0 else None, queue) for c in chunks]
     return run_searches(tracker, searches)
 

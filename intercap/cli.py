@@ -43,7 +43,8 @@ def _cmd_run(args) -> int:
     cfg = load_config(args.config, overrides)
     metrics = run_pipeline(args.session, args.out, cfg, progress=not args.quiet)
     for stage, figures in metrics.items():
-        shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in figures.items())
+        shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in figures.items()
+                          if not (isinstance(v, list) and v and isinstance(v[0], dict)))  # tables: metrics.json
         print(f"{stage}: {shown}")
     print(f"results in {Path(args.out).resolve()}")
     return 0

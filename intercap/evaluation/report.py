@@ -558,6 +558,26 @@ def _calibration_section(page: Page, out_dir: Path) -> None:
                  + msg)
 
 
+def _orientation_section(page: Page, figures: dict) -> None:
+    """The object stage's orientation checks: per check, each axis-aligned orientation's E_O after its
+    short fit, lowest first, and the margin between the two lowest (a small one: look at the overlays)."""
+    checks = figures.get("orientation_hypotheses")
+    if not checks:
+        return
+    rows = []
+    for check in checks:
+        fitted = [e for e in check.get("energies") or [] if e is not None]
+        rows.append({"frame": check.get("frame"), "checked at": str(check.get("why", "")).replace("_", " "),
+                     "lowest E_O": fitted[0] if fitted else None,
+                     "next orientation": fitted[1] if len(fitted) > 1 else None,
+                     "margin": fitted[1] / fitted[0] if len(fitted) > 1 and fitted[0] > 0 else None,
+                     "E_O of the orientations fitted": ", ".join(f"{e:.3g}" for e in fitted)})
+    page.add("orientations", "Object orientation checks",
+             "<p>Where a track starts, where the object first moves and where E_O stays high, every "
+             "axis-aligned turn of the mesh (its symmetries left out) is fitted and scored by E_O; the lowest "
+             "wins. A margin near 1 means two orientations explain the views about equally well.</p>" + table(rows))
+
+
 def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True) -> Path:
     """Write OUT/report/index.html (and the overlay images and video beside it); returns its path.
 
@@ -583,6 +603,7 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     _summary_section(page, session, report_dir)
     _stages_section(page, out_dir, metrics)
     _calibration_section(page, out_dir)
+    _orientation_section(page, metrics.get("object") or {})
     _advance(bar, steps)
 
     # overlays

@@ -100,3 +100,49 @@ def components(mask: np.ndarray, min_area: int, bridge_px: int = 0) -> list[np.n
     parts = [p for p in parts if p.sum() >= min_area]
     parts.sort(key=lambda p: -int(p.sum()))
     return parts
+
+
+# BODY_25 bones a person occupies (keypoint a, keypoint b, width in metres): head, torso, arms,
+# legs. The hands are left out: they are where a held object is.
+PERSON_BONES = (
+    (0, 1, 0.20), (0, 17, 0.12), (0, 18, 0.12), (1, 8, 0.34), (2, 9, 0.14), (5, 12, 0.14), (2, 5, 0.14),
+    (2, 3, 0.12), (5, 6, 0.12), (3, 4, 0.07), (6, 7, 0.07), (9, 12, 0.16),
+    (9, 10, 0.16), (12, 13, 0.16), (10, 11, 0.12), (13, 14, 0.12),
+)
+
+
+def keypoint_depth(depth: np.ndarray, xy: np.ndarray, radius_px: int) -> float:
+    """The person's depth at one keypoint (metres, 0 when unknown): the near third of the valid depths
+    in a small window (a keypoint on the silhouette's edge has the background in its window too)."""
+    H, W = depth.shape
+    x, y = int(round(xy[0])), int(round(xy[1]))
+    window = depth[max(0, y - radius_px):min(H, y + radius_px + 1), max(0, x - radius_px):min(W, x + radius_px + 1)]
+    valid = window[window > 0]
+    return float(np.percentile(valid, 33)) if valid.size else 0.0
+
+
+def person_from_keypoints(keypoints: np.ndarray, depth: np.ndarray, focal_px: float, min_confidence: float = 0.3,
+                          depth_band_m: float = 0.2) -> np.ndarray:
+    """Pixels of the person's head, trunk, arms and legs, (H, W) bool, from one view's 2D keypoints
+    (OpenPose BODY_25 first, pixels) and its depth map: each bone of `PERSON_BONES` drawn as wide as
+    the body part is at its depth, kept where the depth lies within `depth_band_m` of the bone's.
+
+    Where a raw session has no person masks, this keeps the person out of the search for an
+    object: without it a head is a box-sized blob of foreground. The hands are not drawn."""
+    H, W = depth.shape
+    out = np.zeros((H, W), bool)
+    radius = max(1, int(round(W / 160)))
+    z = np.zeros(len(keypoints))
+    seen = keypoints[:, 2] >= min_confidence
+    for k in np.flatnonzero(seen[:25]):
+        z[k] = keypoint_depth(depth, keypoints[k, :2], radius)
+    for a, b, width in PERSON_BONES:
+        if not (seen[a] and seen[b] and z[a] > 0 and z[b] > 0):
+            continue
+        near, far = min(z[a], z[b]) - depth_band_m, max(z[a], z[b]) + depth_band_m
+        thickness = max(1, int(round(focal_px * width / ((z[a] + z[b]) / 2))))
+        bone = np.zeros((H, W), np.uint8)
+        cv2.line(bone, tuple(int(round(v)) for v in keypoints[a, :2]), tuple(int(round(v)) for v in keypoints[b, :2]),
+                 1, thickness)
+        out |= bone.astype(bool) & (depth > near) & (depth < far)
+    return out

@@ -9,6 +9,7 @@ SESSION_FORMAT.md, with ground_truth/.
 
     python -m intercap.synth OUT --preset sample
     python -m intercap.synth OUT --script lift_drink --cameras 6 --width 640 --height 576
+    python -m intercap.synth OUT --script table_lift --object flat_box --no-masks --no-keypoints --camera-world
 
 The same seed gives byte-identical npy/json/png files.
 """
@@ -45,7 +46,7 @@ FLOOR_TILE = 0.5
 class SynthConfig:
     """Everything that defines a synthetic session (defaults: a full-size session)."""
 
-    script: str = "pick_place"  # pick_place | lift_drink | push_chair | toss | hold | drop (physics) | turn
+    script: str = "pick_place"  # pick_place lift_drink push_chair toss hold drop (physics) turn table_lift
     object: str | None = None  # `objects.OBJECT_NAMES`; default: the script's own
     frames: int | None = None  # None: the whole script at its natural speed; else resampled to this many
     fps: float = 30.0
@@ -97,6 +98,7 @@ class SynthConfig:
     drop_view: int = -1  # which camera (index) loses them
     # annotations the pipeline should normally find itself
     annotate: bool = False  # also write contact_frames, ground and the object's initial pose
+    camera_world: bool = False  # camera 0 is the world (OpenCV axes, y down), as Kinect rigs write it; else z up
     # solver effort
     ik_iters: int = 100
     threads: int = 1  # torch CPU threads for the motion solve (1 is robust on busy machines)
@@ -285,6 +287,9 @@ def body_vertex_colours(model, rest_vertices: np.ndarray, seed: int, appearance:
     jitter = np.random.default_rng([seed, 202]).normal(0, 5, (len(names), 1))
     rgb = np.clip(colours + jitter, 0, 255).astype(np.uint8)
     return np.concatenate([rgb, np.full((len(rgb), 1), 255, np.uint8)], 1)
+
+
+PROP_COLOURS = {"table": (150, 112, 80), "shelf": (112, 124, 140), "stool": (168, 72, 56)}  # by prop name
 
 
 def floor_mesh(half: float = 5.0, tile: float = FLOOR_TILE) -> trimesh.Trimesh:
@@ -696,6 +701,16 @@ def dropped_frames(cfg: SynthConfig, T: int) -> set:
     return set(int(f) for f in rng.choice(np.arange(1, T), size=min(count, T - 1), replace=False))
 
 
+# options recorded in ground_truth/info.json only when set, so that sessions made without them keep their bytes
+_RECORDED_WHEN_SET = ("camera_world",)
+
+
+def recorded_config(cfg: SynthConfig) -> dict:
+    """The config as ground_truth/info.json records it (JSON types; `_RECORDED_WHEN_SET` only when set)."""
+    doc = json.loads(json.dumps(dataclasses.asdict(cfg)))
+    return {k: v for k, v in doc.items() if v or k not in _RECORDED_WHEN_SET}
+
+
 def log(cfg: SynthConfig, *args) -> None:
     if not cfg.quiet:
         print(*args, flush=True)
@@ -723,12 +738,12 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     torch.manual_seed(cfg.seed)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    script = get_script(cfg.script)
+    spec = make_object(cfg.object or get_script(cfg.script).default_object)
+    script = get_script(cfg.script, spec)
     if cfg.flight_turns:
         if script.flight is None or script.flight[0] != "catch":
             raise ValueError(f"--flight-turns needs a script with a caught flight (toss), not {cfg.script!r}")
         script = dataclasses.replace(script, flight_turns=float(cfg.flight_turns))
-    spec = make_object(cfg.object or script.default_object)
     times, speed = script_times(script.duration, cfg)
     T = len(times)
     if abs(speed - 1) > 0.05:
@@ -754,10 +769,10 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
         rest_v = model(model.init_params(1)).vertices[0].numpy()
     colours = body_vertex_colours(model, rest_v, cfg.seed, cfg.appearance)
     statics = [floor_mesh()] + (wall_meshes(cfg.ring_radius + 1.3) if cfg.walls else [])
-    for _, mesh, pose in anim.props:
+    for name, mesh, pose in anim.props:
         m = mesh.copy()
         m.apply_transform(pose)
-        m.visual.vertex_colors = np.array((150, 112, 80, 255), np.uint8)
+        m.visual.vertex_colors = np.array(PROP_COLOURS.get(name, PROP_COLOURS["table"]) + (255,), np.uint8)
         statics.append(m)
 
     # static files
@@ -776,7 +791,7 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     params = {k: v.astype(np.float32) for k, v in anim.params.to_numpy_dict().items()}
     save_npz_deterministic(gt / "body_params.npz", model=np.array("anny"), **params)
     write_json(gt / "info.json", {
-        "generator": "intercap.synth", "config": json.loads(json.dumps(dataclasses.asdict(cfg))),
+        "generator": "intercap.synth", "config": recorded_config(cfg),
         "script": script.name, "speed": round(speed, 6), "phases": anim.phases,
         "script_times": np.round(times, 6).tolist(),
         "hand_object": {h: {k: round(v, 6) for k, v in d.items()} for h, d in anim.hand_gap.items()},
@@ -838,6 +853,10 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
                 job.result()  # re-raises a worker's error
     finally:
         renderer.close()
+    if cfg.camera_world:  # the same images; calibration and ground truth in camera 0's frame
+        from intercap.synth.reframe import camera_frame, reexpress_in_place
+
+        reexpress_in_place(out, camera_frame(out, 0))
     elapsed = time.perf_counter() - t_render
     per_view = elapsed / max(views_done, 1)
     log(cfg, f"[synth] {T} frames x {len(cams)} views ({cfg.width}x{cfg.height}): "
@@ -895,6 +914,9 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     parser.add_argument("--drop-view", type=int, default=None)
     parser.add_argument("--annotate", action="store_true", default=None,
                         help="also write contact_frames, ground and the object's initial pose to session.yaml")
+    parser.add_argument("--camera-world", action="store_true", default=None,
+                        help="camera 0 as the world frame (OpenCV axes, y down, as Kinect rigs write it), "
+                             "not the default z-up world; the ground truth's body_params.npz is left out")
     parser.add_argument("--ik-iters", type=int, default=None, help="L-BFGS iterations of the arm IK")
     parser.add_argument("--threads", type=int, default=None, help="torch CPU threads for the motion solve")
     parser.add_argument("--quiet", action="store_true", default=None)
@@ -907,7 +929,8 @@ def config_from_args(args: argparse.Namespace) -> SynthConfig:
     changes = {}
     simple = ["script", "object", "frames", "fps", "seed", "phenotype", "cameras", "width", "height", "focal_scale",
               "ring_radius", "ring_height", "look_at", "dist", "color_format", "clean_depth", "drop_rate", "drop_view",
-              "annotate", "ik_iters", "threads", "quiet", "appearance", "light", "flight_turns", "flying_pixels"]
+              "annotate", "ik_iters", "threads", "quiet", "appearance", "light", "flight_turns", "flying_pixels",
+              "camera_world"]
     for name in simple:
         value = getattr(args, name, None)
         if value is not None:

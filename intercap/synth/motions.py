@@ -14,7 +14,8 @@ vertices and keypoints, object poses and contact labels:
    carried in the person's heading frame, or held at the mouth);
 4. L-BFGS on the body model bends the arms (and a little the spine) so each
    palm lies on its grasp point, facing the surface, with the hand kept out of
-   the object and above the floor (solved at <= 5 Hz, spread, polished per frame);
+   the object and above the floor and the table tops the script names (solved at
+   <= 5 Hz, spread, polished per frame);
 5. per-finger curls (and the thumb) close until the fingers touch the object
    without sinking in (a signed-distance grid of the object, differentiable).
 While the hands hold it, the object therefore moves rigidly with them: its pose
@@ -36,11 +37,12 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
-from intercap.synth.objects import ObjectSpec, SdfGrid, SurfaceDistance
+from intercap.synth.objects import ObjectSpec, SdfGrid, SurfaceDistance, make_object
 
-SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop", "turn")
+SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop", "turn", "table_lift")
 PHYSICS_SCRIPTS = ("toss", "hold", "drop")  # scripts with analytic physics (ground_truth/physics.npz)
 GRAVITY = 9.81  # m/s^2 along the generator's up (+z)
+TABLE_TOP = 0.74  # height of the "table" prop's top above the floor, metres
 
 # Bones the IK may move, with the weight of their pull back to the scripted pose.
 IK_BONES = {
@@ -68,6 +70,7 @@ class ObjectKey:
     rel: np.ndarray
     ref: float = 0.0
     on_floor: bool = False  # rest on the floor: the height becomes the object's own half height
+    on_surface: float | None = None  # rest on a level surface this high (m): its height plus the half height
 
 
 @dataclass
@@ -102,6 +105,7 @@ class Script:
     # falling onto the floor; the object follows an exact parabola under GRAVITY in between
     flight: tuple | None = None
     flight_turns: float = 0.0  # "catch": whole turns about the object's own x axis in flight (a spinning toss)
+    hands_above: tuple = ()  # names of props (tables) whose top the hands and fingers stay above
 
 
 def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
@@ -113,6 +117,7 @@ def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
 
 
 # Postures (anny bone -> axis-angle), mirrored for the two sides where it matters.
+FOREARM_AXIS_R = (-0.511, -0.684, -0.521)  # anny's right forearm at rest (elbow to wrist, model axes): its twist axis
 ARMS_RELAXED = {"upperarm01.L": (0.0, 0.55, 0.0), "upperarm01.R": (0.0, -0.55, 0.0),
                 "lowerarm01.L": (-0.15, 0.0, 0.0), "lowerarm01.R": (-0.15, 0.0, 0.0)}
 
@@ -282,9 +287,84 @@ def turn() -> Script:
                   contact=("hold", "hold"))
 
 
-def get_script(name: str) -> Script:
+def _table_layout(spec: ObjectSpec, near_edge: float, right_edge: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """Where table_lift puts the object, in the heading frame: its pose resting on the table (height
+    set by `on_surface`), its pose held up, and the forward lean (rad) of the reach.
+
+    The object rests 3 cm in from the table's near edge (`near_edge` m ahead), at least 0.45 m ahead,
+    in the middle (one hand: its grasp 0.16 m right); one held by a handle (`Grasp.wraps`) rests 0.42 m
+    ahead with that grasp 9 cm out over the table's right edge (`right_edge`). Held up, the palms'
+    midpoint is 0.39 m ahead and 1.02 m high; one hand holds it 0.38 m ahead, 1.0 m high and 0.18 m
+    right, turned so that the palm faces left with the fingers forward (a tool held upright)."""
+    grasps = list(spec.grasps.values())
+    point = np.mean([g.point for g in grasps], axis=0)
+    wraps = any(g.wraps for g in grasps)
+    x = right_edge + 0.09 - point[0] if wraps else (0.16 - point[0] if len(grasps) == 1 else 0.0)
+    y = 0.42 if wraps else max(0.45, near_edge + 0.03 + float(spec.mesh.bounds[1, 1]))
+    R, hand = np.eye(3), np.array([0.0, 0.39, 1.02])
+    if len(grasps) == 1:
+        n, f = np.asarray(grasps[0].normal, float), np.asarray(grasps[0].finger_dir, float)
+        R, hand = np.column_stack([n, f, np.cross(n, f)]).T, np.array([0.18, 0.38, 1.0])  # n -> x, f -> y
+    held = np.eye(4)
+    held[:3, :3], held[:3, 3] = R, hand - R @ point
+    # lean further for a grasp farther ahead, out to the right or nearer the table top (a flat box)
+    height = TABLE_TOP + spec.half_height + point[2]
+    far = 1.5 * (0.86 - height) + 1.5 * (y + point[1] - 0.45) + 1.5 * max(0.0, x + point[0] - 0.16)
+    lean = float(np.clip(0.12 + far, 0.12, 0.3))
+    return _rel(x, y, 0.0), held, lean
+
+
+def table_lift(spec: ObjectSpec | None = None) -> Script:
+    """Stand at a table beside a shelf and a stool, grasp the object resting on the table top (both hands,
+    or the right hand alone for an object with one grasp), lift it, turn 90 degrees left holding it,
+    turn back, put it down where it was, let go and step back. The object lies still on the table for
+    the first third and the last quarter; the furniture never moves."""
+    spec = spec if spec is not None else make_object("carton")
+    one_hand = "left" not in spec.grasps
+    phases = {"stand": (0.0, 0.8), "reach": (0.8, 1.8), "grasp": (1.8, 2.1), "lift": (2.1, 2.9), "turn": (2.9, 3.8),
+              "turn_back": (3.8, 4.6), "put_down": (4.6, 5.2), "release": (5.2, 5.5), "step_back": (5.5, 6.8)}
+    # Turning on the spot pivots about the feet, 12 cm ahead of the hips: the table's near edge stands
+    # 0.36 m ahead so that the hips clear it at 90 degrees. The shelf (behind the table, open towards
+    # it) and the stool stand 1.2-1.5 m off the action, between the default ring's cameras and low
+    # enough that a camera behind them still sees the person over them.
+    table_x, table_y = -0.15, 0.66
+    rest, held, lean = _table_layout(spec, near_edge=table_y - 0.3, right_edge=table_x + 0.4)
+    if one_hand:
+        reach = dict(ARMS_RELAXED, **{"upperarm01.R": (-0.6, 0.1, 0.0), "lowerarm01.R": (-0.6, 0.0, 0.0),
+                                      "spine03": (0.08, 0.0, 0.0)})
+        if spec.grasps["right"].normal[2] > 0.5:  # palm down onto it: the forearm turned in (pronated)
+            reach["lowerarm02.R"] = tuple(-1.2 * np.asarray(FOREARM_AXIS_R))
+        carry = dict(ARMS_RELAXED, **{"upperarm01.R": (-0.45, -0.1, 0.0), "lowerarm01.R": (-1.3, 0.0, 0.0)})
+    else:
+        reach = {"upperarm01.L": (-0.6, 0.15, 0.0), "upperarm01.R": (-0.6, -0.15, 0.0),
+                 "lowerarm01.L": (-0.5, 0.0, 0.0), "lowerarm01.R": (-0.5, 0.0, 0.0), "spine03": (0.08, 0.0, 0.0)}
+        carry = _hold(elbow=1.3, forward=0.35)
+    pose_keys = [(0.0, ARMS_RELAXED), (0.8, ARMS_RELAXED), (1.8, reach), (2.1, reach), (2.9, carry), (4.6, carry),
+                 (5.2, reach), (5.5, reach), (6.3, ARMS_RELAXED)]
+    pitch_keys = [(0.0, 0.0), (0.8, 0.0), (1.8, lean), (2.1, lean), (2.9, 0.05), (4.6, 0.05), (5.2, lean),
+                  (5.5, lean), (6.3, 0.0)]
+    yaw_keys = [(0.0, 0.0), (2.9, 0.0), (3.7, np.pi / 2), (3.9, np.pi / 2), (4.6, 0.0)]
+    walk_keys = [(0.0, 0.0), (5.5, 0.0), (5.9, -0.55), (6.4, -0.55), (6.8, 0.0)]
+    reach_keys = [(0.0, 0.0), (1.0, 0.0), (1.7, 1.0), (5.5, 1.0), (6.0, 0.0)]
+    gap_keys = [(0.0, 0.12), (1.0, 0.12), (1.8, 0.0), (5.2, 0.0), (5.7, 0.12)]
+    close_keys = [(0.0, 0.0), (1.8, 0.0), (2.1, 1.0), (5.2, 1.0), (5.4, 0.0)]
+    on_table = [ObjectKey(t, "world", rest, on_surface=TABLE_TOP) for t in (0.0, 2.1, 5.2, 6.8)]
+    object_keys = on_table[:2] + [ObjectKey(2.9, "body", held), ObjectKey(4.6, "body", held)] + on_table[2:]
+    props = [("table", "table", _rel(table_x, table_y, TABLE_TOP / 2)),
+             ("shelf", "shelf", _rel(0.8, 1.35, SHELF_SIZE[2] / 2)),
+             ("stool", "stool", _rel(-1.0, 0.9, STOOL_SIZE[2] / 2, rotvec=(0.0, 0.0, 0.4)))]
+    return Script("table_lift", 6.8, phases, "carton", ("right",) if one_hand else ("left", "right"), pose_keys,
+                  pitch_keys, yaw_keys, walk_keys, reach_keys, gap_keys, close_keys, object_keys,
+                  contact=("grasp", "put_down"), props=props, hands_above=("table",))
+
+
+def get_script(name: str, spec: ObjectSpec | None = None) -> Script:
+    """The named script (`SCRIPT_NAMES`); table_lift fits its grasp and layout to the object `spec`
+    (its default, the carton, when None); the others hold every object the same way."""
     scripts = {"pick_place": pick_place, "lift_drink": lift_drink, "push_chair": push_chair, "toss": toss,
                "hold": hold, "drop": drop, "turn": turn}
+    if name == "table_lift":
+        return table_lift(spec)
     if name not in scripts:
         raise ValueError(f"unknown script {name!r}; choose one of {SCRIPT_NAMES}")
     return scripts[name]()
@@ -296,21 +376,69 @@ def contact_interval(script: Script) -> tuple[float, float]:
     return script.phases[script.contact[0]][0], script.phases[script.contact[1]][1]
 
 
+SHELF_SIZE = (0.80, 0.35, 0.90)  # the "shelf" prop: width (x), depth (y), height (z), metres
+STOOL_SIZE = (0.38, 0.38, 0.46)  # the "stool" prop: seat width, depth and height, metres
+
+
+def _table_mesh() -> trimesh.Trimesh:
+    """A table 0.8 x 0.6 m, 0.74 m high (TABLE_TOP): a top on four legs, centred on its bounding box."""
+    parts = []
+    top = trimesh.creation.box(extents=(0.8, 0.6, 0.04))
+    top.apply_translation((0, 0, 0.37 - 0.02))
+    parts.append(top)
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            leg = trimesh.creation.box(extents=(0.05, 0.05, 0.70 - 0.001))
+            leg.apply_translation((sx * 0.35, sy * 0.25, -0.37 + 0.35 - 0.0005))
+            parts.append(leg)
+    return trimesh.util.concatenate(parts)
+
+
+def _boxes_mesh(boxes: list, size: tuple) -> trimesh.Trimesh:
+    """Closed boxes given by (lo, hi) corners in a frame with the floor at z = 0 and the footprint
+    centred, joined and moved so the whole is centred on its bounding box (`size`)."""
+    parts = []
+    for lo, hi in boxes:
+        lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+        part = trimesh.creation.box(extents=hi - lo)
+        part.apply_translation((lo + hi) / 2 - (0.0, 0.0, size[2] / 2))
+        parts.append(part)
+    return trimesh.util.concatenate(parts)
+
+
+def _shelf_mesh(size=SHELF_SIZE, board=0.02, gap=0.001) -> trimesh.Trimesh:
+    """An open shelf unit, open to -y: two sides, a top, two boards and a back panel, 1 mm apart."""
+    hw, hd, h = size[0] / 2, size[1] / 2, size[2]
+    boxes = [((-hw, -hd, 0.0), (-hw + board, hd, h)), ((hw - board, -hd, 0.0), (hw, hd, h)),  # sides
+             ((-hw + board + gap, hd - 0.01, 0.05), (hw - board - gap, hd, h - board - gap))]  # back panel
+    for z in (0.05, 0.45, h - board):  # boards, the lowest above a plinth gap, the last the top
+        boxes.append(((-hw + board + gap, -hd, z), (hw - board - gap, hd - 0.01 - gap, z + board)))
+    return _boxes_mesh(boxes, size)
+
+
+def _stool_mesh(size=STOOL_SIZE, bar=0.035, seat=0.04, gap=0.001) -> trimesh.Trimesh:
+    """A stool: a square seat on four legs, 1 mm apart."""
+    hw, hd, h = size[0] / 2, size[1] / 2, size[2]
+    boxes = [((-hw, -hd, h - seat), (hw, hd, h))]
+    for sx in (-1, 1):
+        for sy in (-1, 1):
+            x0 = hw - 0.02 - bar if sx > 0 else -hw + 0.02
+            y0 = hd - 0.02 - bar if sy > 0 else -hd + 0.02
+            boxes.append(((x0, y0, 0.0), (x0 + bar, y0 + bar, h - seat - gap)))
+    return _boxes_mesh(boxes, size)
+
+
+PROP_KINDS = {"table": _table_mesh, "shelf": _shelf_mesh, "stool": _stool_mesh}
+
+
 def prop_meshes(script: Script) -> list[tuple[str, trimesh.Trimesh, np.ndarray]]:
-    """Static scene meshes of the script (name, mesh, rel pose in the heading frame at time 0)."""
+    """Static scene meshes of the script (name, mesh, rel pose in the heading frame at time 0); each
+    mesh is centred on its bounding box (`PROP_KINDS`)."""
     out = []
     for name, kind, rel in script.props:
-        if kind == "table":
-            parts = []
-            top = trimesh.creation.box(extents=(0.8, 0.6, 0.04))
-            top.apply_translation((0, 0, 0.37 - 0.02))
-            parts.append(top)
-            for sx in (-1, 1):
-                for sy in (-1, 1):
-                    leg = trimesh.creation.box(extents=(0.05, 0.05, 0.70 - 0.001))
-                    leg.apply_translation((sx * 0.35, sy * 0.25, -0.37 + 0.35 - 0.0005))
-                    parts.append(leg)
-            out.append((name, trimesh.util.concatenate(parts), rel))
+        if kind not in PROP_KINDS:
+            raise ValueError(f"script {script.name}: unknown prop kind {kind!r}; choose one of {sorted(PROP_KINDS)}")
+        out.append((name, PROP_KINDS[kind](), rel))
     return out
 
 
@@ -508,6 +636,8 @@ def object_track(script: Script, frames: dict, times: np.ndarray, scale: float =
         rel = key.rel.copy()
         if key.on_floor and half_height is not None:
             rel[2, 3] = half_height
+        if key.on_surface is not None and half_height is not None:
+            rel[2, 3] = key.on_surface + half_height
         if key.frame == "body":
             rel[:3, 3] *= scale
             return heading @ rel
@@ -673,6 +803,40 @@ def below_floor(points: torch.Tensor, margin: float = 0.003) -> torch.Tensor:
     return (torch.relu(margin - points[..., 2]) ** 2).sum(-1) / 0.002**2
 
 
+@dataclass
+class LevelSurfaces:
+    """Level rectangles (table tops) the hands stay above, as `below_floor` keeps them above the floor:
+    per surface the pose of its top's centre in the world (z up) and the top's half sizes."""
+
+    top_poses: torch.Tensor  # (S, 4, 4) top centre -> world
+    half_sizes: torch.Tensor  # (S, 2) along the top's x and y
+
+    @classmethod
+    def of_props(cls, props: list, names: tuple) -> LevelSurfaces | None:
+        """The tops of the props (name, mesh centred on its bounding box, world pose) named in `names`."""
+        poses, halves = [], []
+        for name, mesh, pose in props:
+            if name in names:
+                top = np.eye(4)
+                top[2, 3] = mesh.bounds[1, 2]
+                poses.append(pose @ top)
+                halves.append(np.asarray(mesh.bounds[1, :2]))
+        if not poses:
+            return None
+        return cls(torch.as_tensor(np.stack(poses), dtype=torch.float32),
+                   torch.as_tensor(np.stack(halves), dtype=torch.float32))
+
+    def below(self, points: torch.Tensor, margin: float = 0.003, reach: float = 0.15) -> torch.Tensor:
+        """(B,) sum of squared depths of points (B, N, 3) below a top (+ margin), over (2 mm)^2, counting
+        the points over a top's rectangle and less than `reach` below it."""
+        poses = self.top_poses.to(points.dtype)
+        local = torch.einsum("bnk,skj->bnsj", points, poses[:, :3, :3]) - torch.einsum(
+            "sk,skj->sj", poses[:, :3, 3], poses[:, :3, :3])  # (B, N, S, 3) in each top's frame
+        over = (local[..., :2].abs() < self.half_sizes.to(points.dtype)).all(-1) & (local[..., 2] > -reach)
+        depth = torch.relu(margin - local[..., 2]) * over
+        return (depth**2).sum((-1, -2)) / 0.002**2
+
+
 def run_lbfgs(variables: list, loss_fn, iters: int) -> None:
     opt = torch.optim.LBFGS(variables, lr=1.0, max_iter=iters, history_size=50, line_search_fn="strong_wolfe",
                             tolerance_change=1e-10, tolerance_grad=1e-9)
@@ -687,13 +851,14 @@ def run_lbfgs(variables: list, loss_fn, iters: int) -> None:
 
 
 def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, sdf, obj_poses: np.ndarray,
-                 iters: int = 40, prior_pose: torch.Tensor | None = None, retries: int = 2) -> torch.Tensor:
+                 iters: int = 40, prior_pose: torch.Tensor | None = None, retries: int = 2,
+                 surfaces: LevelSurfaces | None = None) -> torch.Tensor:
     """Bend spine and arms so the palms meet their targets, at frames where `weight` > 0.
 
     Minimises, per frame, with L-BFGS:
       w * sum_hands [ |c - c*|^2 / (1 cm)^2 + 10 (1 - n.n*) + 10 (1 - d.d*)
                       + |palm and back of hand inside the object|^2 / (2 mm)^2 ]
-      + sum_bones lambda_b |theta_b - theta_b^script|^2
+      + sum_bones lambda_b |theta_b - theta_b^script|^2  (+ the hands below `surfaces`' tops, if any)
     theta^script is `prior_pose` (T, Jb, 3) when given, else params.body_pose (the start).
     One L-BFGS over all frames can leave a few frames behind (a shared line
     search): frames whose palm is still > 4 mm off are solved again on their own
@@ -730,6 +895,9 @@ def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, s
             inside = penetration(sdf, to_object_frame(hand, poses), 0.0) / 0.002**2
             inside = inside + below_floor(out.vertices[:, hands[side].whole])
             loss = loss + (w * (err + inside)).sum()
+            if surfaces is not None:  # full weight in every frame solved, also while the hand comes near;
+                # 12 mm clear, for the IK sees the fingers relaxed and they stretch open as the hand nears
+                loss = loss + surfaces.below(out.vertices[:, hands[side].whole], margin=0.012).sum()
         return loss
 
     run_lbfgs([var], loss_fn, iters)
@@ -748,7 +916,8 @@ def solve_arm_ik(model, params, targets: dict, weight: np.ndarray, geom: dict, s
     again = np.zeros_like(weight)
     again[bad] = weight[bad]
     return solve_arm_ik(model, dataclasses.replace(params, body_pose=body_pose), targets, again, geom, sdf, obj_poses,
-                        iters=iters, prior_pose=prior if prior_pose is None else prior_pose, retries=retries - 1)
+                        iters=iters, prior_pose=prior if prior_pose is None else prior_pose, retries=retries - 1,
+                        surfaces=surfaces)
 
 
 def finger_bone_ids(model, finger: int) -> list[int]:
@@ -775,7 +944,8 @@ def finger_pose(model, side: str, curls: torch.Tensor, thumb: torch.Tensor | Non
 
 
 def solve_finger_grasp(model, params, frames: np.ndarray, geom: dict, sides: list, sdf, obj_poses: np.ndarray,
-                       relaxed: float, iters: int = 40, init: dict | None = None) -> dict:
+                       relaxed: float, iters: int = 40, init: dict | None = None,
+                       surfaces: LevelSurfaces | None = None) -> dict:
     """Close the fingers onto the object at `frames` (contact frames).
 
     Per side, variables: a curl per finger (F, 5) and a thumb-base rotation (F, 3).
@@ -802,6 +972,8 @@ def solve_finger_grasp(model, params, frames: np.ndarray, geom: dict, sides: lis
             g = local[s]
             loss = loss + penetration(sdf, to_object_frame(out.vertices[:, g.hand], poses), 0.001).sum() / 0.002**2
             loss = loss + below_floor(out.vertices[:, g.whole]).sum()
+            if surfaces is not None:
+                loss = loss + surfaces.below(out.vertices[:, g.whole]).sum()
             for f, ids in enumerate(g.fingers):
                 d = sdf(to_object_frame(out.vertices[:, ids], poses))  # (F, n)
                 loss = loss + (torch.relu(0.001 - d) ** 2).sum() / 0.002**2
@@ -853,28 +1025,32 @@ def interpolate_corrections(base: torch.Tensor, solved: torch.Tensor, solved_fra
     return torch.as_tensor(out, dtype=base.dtype)
 
 
-def coarse_to_fine_ik(model, params, targets, weight, geom, sdf, obj_poses, times, rate_hz, iters, polish_iters):
-    """Arm IK solved at <= rate_hz, spread to all frames, then polished at every frame."""
+def coarse_to_fine_ik(model, params, targets, weight, geom, sdf, obj_poses, times, rate_hz, iters, polish_iters,
+                      surfaces=None):
+    """Arm IK solved at <= rate_hz, spread to all frames, then polished at every frame (hands above the
+    floor and `surfaces`)."""
     active = np.flatnonzero(weight > 1e-3)
     coarse = coarse_subset(active, times, rate_hz)
     if len(coarse) == len(active):
-        return solve_arm_ik(model, params, targets, weight, geom, sdf, obj_poses, iters=iters)
+        return solve_arm_ik(model, params, targets, weight, geom, sdf, obj_poses, iters=iters, surfaces=surfaces)
     mask = np.zeros(len(times), bool)
     mask[coarse] = True
-    solved = solve_arm_ik(model, params, targets, np.where(mask, weight, 0.0), geom, sdf, obj_poses, iters=iters)
+    solved = solve_arm_ik(model, params, targets, np.where(mask, weight, 0.0), geom, sdf, obj_poses, iters=iters,
+                          surfaces=surfaces)
     # anchor the spread at the frames just outside the active range (no correction there)
     anchors = np.unique(np.concatenate([coarse, np.clip([active[0] - 1, active[-1] + 1], 0, len(times) - 1)]))
     start = interpolate_corrections(params.body_pose.detach(), solved[anchors], anchors)
     warm = dataclasses.replace(params, body_pose=start)
     return solve_arm_ik(model, warm, targets, weight, geom, sdf, obj_poses, iters=polish_iters,
-                        prior_pose=params.body_pose)
+                        prior_pose=params.body_pose, surfaces=surfaces)
 
 
 def coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, times, relaxed, rate_hz, iters,
-                        polish_iters) -> dict:
+                        polish_iters, surfaces=None) -> dict:
     """Finger grip solved at <= rate_hz among the contact frames, interpolated, then polished."""
     coarse = coarse_subset(frames, times, rate_hz)
-    grip = solve_finger_grasp(model, params, coarse, geom, sides, sdf, obj_poses, relaxed, iters=iters)
+    grip = solve_finger_grasp(model, params, coarse, geom, sides, sdf, obj_poses, relaxed, iters=iters,
+                              surfaces=surfaces)
     if len(coarse) == len(frames):
         return grip
     if polish_iters <= 0:
@@ -892,7 +1068,7 @@ def coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, time
         ti = np.stack([np.interp(frames, coarse, t[:, k]) for k in range(3)], 1)
         init[s] = (torch.as_tensor(ci), torch.as_tensor(ti))
     return solve_finger_grasp(model, params, frames, geom, sides, sdf, obj_poses, relaxed, iters=polish_iters,
-                              init=init)
+                              init=init, surfaces=surfaces)
 
 
 # ----------------------------------------------------------------------------- all together
@@ -1036,13 +1212,15 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     plan, flight = obj_poses, None
     if script.flight is not None:  # the hands keep to the plan; the object flies
         obj_poses, flight = flight_track(script, plan, times, spec.half_height)
-    sdf = SdfGrid(spec.mesh)
+    sdf = SdfGrid(spec.mesh, max_cells=spec.sdf_cells)
     reach = eased_scalar(script.reach_keys, times)
     gap = eased_scalar(script.gap_keys, times)
     targets = grasp_targets(script, spec, plan, gap)
+    props = [(name, mesh, heading[0] @ rel) for name, mesh, rel in prop_meshes(script)]
+    surfaces = LevelSurfaces.of_props(props, script.hands_above)
     clock["placement"] = time.perf_counter()
     params.body_pose = coarse_to_fine_ik(model, params, targets, reach, geom, sdf, obj_poses, times, solve_rate_hz,
-                                         ik_iters, polish_iters)
+                                         ik_iters, polish_iters, surfaces)
 
     clock["arm_ik"] = time.perf_counter()
     # 5: fingers close onto the object during contact, open (relaxed) otherwise.
@@ -1055,7 +1233,7 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     frames = np.flatnonzero(contact)
     if frames.size:
         grip = coarse_to_fine_grip(model, params, frames, geom, sides, sdf, obj_poses, times, relaxed_curl,
-                                   grip_rate_hz, finger_iters, polish_iters)
+                                   grip_rate_hz, finger_iters, polish_iters, surfaces)
         dtype = params.transl.dtype
         k_reach = torch.as_tensor(reach, dtype=dtype)[:, None]
         k_close = torch.as_tensor(closure, dtype=dtype)[:, None]
@@ -1085,7 +1263,6 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
         out = model(params)
     vertices = out.vertices.numpy().astype(np.float32)
     keypoints = out.keypoints.numpy().astype(np.float32)
-    props = [(name, mesh, heading[0] @ rel) for name, mesh, rel in prop_meshes(script)]
     phase_frames = {}
     for name, (a, b) in script.phases.items():
         sel = np.flatnonzero((times >= a) & (times < b))

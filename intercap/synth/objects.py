@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-OBJECT_NAMES = ("box", "cup", "chair", "block", "board")
+OBJECT_NAMES = ("box", "cup", "chair", "block", "board", "carton", "flat_box", "tool", "ball")
 
 
 @dataclass(frozen=True)
@@ -22,11 +22,13 @@ class Grasp:
 
     point (3,): palm-centre contact point on the surface; normal (3,): outward
     surface normal there (the palm faces -normal); finger_dir (3,): the direction
-    the fingers point along the surface (perpendicular to normal)."""
+    the fingers point along the surface (perpendicular to normal); wraps: whether they close round
+    under the part, as round a handle."""
 
     point: tuple
     normal: tuple
     finger_dir: tuple
+    wraps: bool = False  # the fingers close round the part (a handle): it must stick out over a table's edge
 
 
 @dataclass(frozen=True)
@@ -39,6 +41,7 @@ class ObjectSpec:
     mass_kg: float
     grasps: dict  # 'left' / 'right' -> Grasp (two-handed grasp); one-hand objects use 'right'
     contact_vertices: np.ndarray = field(repr=False)  # (C,) int, sorted
+    sdf_cells: int = 80  # cells along the longest side of the hand solvers' distance grid (more for thin parts)
 
     @property
     def half_height(self) -> float:
@@ -94,6 +97,23 @@ def chair_mesh(width=0.45, depth=0.45, height=0.85, seat_height=0.45, bar=0.04, 
     return mesh
 
 
+def tool_mesh(length=0.60, bar=0.035, head=(0.06, 0.10), gap=0.001) -> trimesh.Trimesh:
+    """A long thin tool lying flat (a scraper, a rake) along x: a square handle with a flat head across its
+    -x end, both `bar` thick (so it lies on both), as two closed boxes 1 mm apart."""
+    hx = length / 2
+    handle = _box_mesh((length - head[0] - gap, bar, bar), max_edge=0.02)
+    handle.apply_translation(((head[0] + gap) / 2, 0.0, 0.0))
+    top = _box_mesh((head[0], head[1], bar), max_edge=0.02)
+    top.apply_translation((head[0] / 2 - hx, 0.0, 0.0))
+    return trimesh.util.concatenate([handle, top])
+
+
+def ball_mesh(radius: float = 0.11, subdivisions: int = 3) -> trimesh.Trimesh:
+    """A ball: an icosphere, evenly meshed (trimesh's has a vertex on each axis: the bounding box is
+    centred at the origin and its lowest vertex lies at -radius)."""
+    return trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+
+
 def _vertices_near(mesh: trimesh.Trimesh, points, normals, radius: float) -> np.ndarray:
     """Vertices within `radius` of any grasp point whose vertex normal agrees with the grasp normal."""
     verts = np.asarray(mesh.vertices)
@@ -104,6 +124,56 @@ def _vertices_near(mesh: trimesh.Trimesh, points, normals, radius: float) -> np.
         facing = vnormals @ np.asarray(n) > 0.5
         keep |= close & facing
     return np.flatnonzero(keep)
+
+
+def _end_grasps(hx: float, z: float, finger_dir) -> dict:
+    """Both palms on the two x ends of an object at height z (object coordinates), fingers along finger_dir."""
+    return {"right": Grasp((hx, -0.01, z), (1.0, 0.0, 0.0), finger_dir),
+            "left": Grasp((-hx, -0.01, z), (-1.0, 0.0, 0.0), finger_dir)}
+
+
+def _carton():
+    """A 2 kg carton, 0.30 x 0.22 x 0.18 m: palms on the two short ends, fingers forward and down (they end
+    above its base, so the hands never reach the surface it stands on)."""
+    mesh = _box_mesh((0.30, 0.22, 0.18), max_edge=0.03)
+    grasps = _end_grasps(float(mesh.bounds[1, 0]), 0.03, (0.0, 0.6, -0.8))
+    return mesh, grasps, dict(color=(190, 150, 100), mass_kg=2.0, radius=0.13), None, None
+
+
+def _flat_box():
+    """A flat 1 kg box, 0.40 x 0.30 x 0.06 m (a pizza or board-game box): palms on the two short ends,
+    fingers pointing forward and up to hook over the lid's edge, so no finger dips below its base."""
+    mesh = _box_mesh((0.40, 0.30, 0.06), max_edge=0.03)
+    grasps = _end_grasps(float(mesh.bounds[1, 0]), 0.005, (0.0, 0.6, 0.8))
+    # fingers hook over its 6 cm lid's edge: a finer distance grid than 1/80 of 0.5 m (4 mm cells, not 6)
+    return mesh, grasps, dict(color=(70, 100, 160), mass_kg=1.0, radius=0.10, sdf_cells=125), None, None
+
+
+def _tool():
+    """A 0.8 kg tool 0.60 m long (`tool_mesh`), held in the right hand alone by the end of its handle
+    (+x), palm on top and fingers forward, closing round under it: it rests with that end out over a
+    table's edge, as one leaves a pan or a hammer to pick it up again (table_lift then holds it upright)."""
+    mesh = tool_mesh()
+    top = float(mesh.bounds[1, 2])
+    grasps = {"right": Grasp((0.245, 0.0, top), (0.0, 0.0, 1.0), (0.0, 1.0, 0.0), wraps=True)}
+    points = [(0.245, 0.0, top), (0.245, top, 0.0), (0.245, 0.0, -top)]
+    normals = [(0.0, 0.0, 1.0), (0.0, 1.0, 0.0), (0.0, 0.0, -1.0)]
+    # a 3.5 cm handle wants a finer distance grid than 1/80 of the tool's 0.7 m (4 mm cells, not 9)
+    spec = dict(color=(215, 180, 40), mass_kg=0.8, radius=0.045, sdf_cells=175)
+    return mesh, grasps, spec, points, normals
+
+
+def _ball():
+    """A 0.5 kg ball of radius 0.11 m: palms on its two sides at the equator, fingers forward."""
+    mesh = ball_mesh()
+    r = float(mesh.bounds[1, 0])
+    grasps = {"right": Grasp((r, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0)),
+              "left": Grasp((-r, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0))}
+    return mesh, grasps, dict(color=(225, 110, 40), mass_kg=0.5, radius=0.07), None, None
+
+
+# objects built by their own function: name -> () -> (mesh, grasps, spec, contact points, contact normals)
+_BUILDERS = {"carton": _carton, "flat_box": _flat_box, "tool": _tool, "ball": _ball}
 
 
 def make_object(name: str) -> ObjectSpec:
@@ -158,6 +228,8 @@ def make_object(name: str) -> ObjectSpec:
             "left": Grasp((-hx, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.6, -0.8)),
         }
         spec = dict(color=(90, 160, 110), mass_kg=0.9, radius=0.10)
+    elif name in _BUILDERS:
+        mesh, grasps, spec, contact_points, contact_normals = _BUILDERS[name]()
     else:
         raise ValueError(f"unknown object {name!r}; choose one of {OBJECT_NAMES}")
     if contact_points is None:

@@ -518,3 +518,53 @@ def test_a_fast_turn_the_spin_predicts_is_not_too_fast():
     assert not turned_too_fast(about([1.0, 0, 0], 60.0), np.eye(3), 1, 45.0, spin)
     assert turned_too_fast(about([0, 1.0, 0], 60.0), np.eye(3), 1, 45.0, spin)
     assert not turned_too_fast(about([0, 1.0, 0], 40.0), np.eye(3), 1, 45.0, spin)
+
+
+def quarter_turned_start(box_session, session: Path) -> Path:
+    """A copy of the session whose session.yaml gives the first pose a quarter turn off: the box
+    turned about its long axis through its centre (two of its sides swapped for others)."""
+    import yaml
+
+    shutil.copytree(box_session, session)
+    truth = np.load(session / "ground_truth" / "object_poses.npz")
+    mesh = Session.load(session).object.load_mesh()
+    centroid = np.asarray(mesh.vertices).mean(0)
+    long_axis = np.linalg.svd(np.asarray(mesh.vertices) - centroid, full_matrices=False)[2][0]
+    R = truth["R"][0] @ axis_rotation(long_axis, 90.0)
+    t = truth["R"][0] @ centroid + truth["t"][0] - R @ centroid
+    doc = yaml.safe_load((session / "session.yaml").read_text())
+    doc["object"]["initial_pose"] = {"R": R.tolist(), "t": t.tolist()}
+    (session / "session.yaml").write_text(yaml.safe_dump(doc))
+    return session
+
+
+def test_a_first_pose_a_quarter_turn_off_is_corrected(box_session, tmp_path):
+    """Started from a first pose a quarter turn off, the orientation check at the track's start
+    (every axis-aligned turn of the box scored by E_O) finds the true one in the first frame; the
+    hypotheses' energies are in the metrics. Without the check the tracker keeps the wrong turn."""
+    session = quarter_turned_start(box_session, tmp_path / "session")
+    metrics = run_pipeline(session, tmp_path / "out", load_config(), stages=["object"], progress=False)["object"]
+    add = add_errors(evaluate(tmp_path / "out", session))
+    assert add[0] < 10.0 and np.nanmax(add) < 20.0, add
+    first = metrics["orientation_hypotheses"][0]
+    assert first["frame"] == 0 and first["why"] == "start"
+    assert len(first["energies"]) == 6  # 24 turns of a box, less its 4 symmetries
+    unchecked = load_config(overrides=["object.check_orientations=false"])
+    run_pipeline(session, tmp_path / "unchecked", unchecked, stages=["object"], progress=False)
+    wrong = add_errors(evaluate(tmp_path / "unchecked", session))[0]
+    assert wrong > 15.0 and wrong > 3 * add[0], (wrong, add[0])
+
+
+def test_orientations_are_the_turns_the_symmetry_leaves():
+    """A box-like mesh has 24 axis-aligned turns and 4 symmetries: 6 distinct orientations; a
+    cylinder (a cup) 3; a chair, with no symmetry, all 24; a ball 1."""
+    import trimesh
+
+    from intercap.synth.objects import make_object
+
+    session = Session.load(SAMPLE)
+    cfg = load_config().object
+    counts = {name: len(ObjectTracker(session, cfg, make_object(name).mesh).orientations())
+              for name in ("box", "cup", "chair")}
+    counts["ball"] = len(ObjectTracker(session, cfg, trimesh.creation.icosphere(3, 0.1)).orientations())
+    assert counts == {"box": 6, "cup": 3, "chair": 24, "ball": 1}

@@ -35,6 +35,12 @@ class ObjectConfig:
     init_ransac_iterations: int = 5000  # RANSAC iterations of each of those registrations
     init_keep: int = 6  # registration hypotheses (best ICP fitness) scored by E_O
     init_refine: int = 8  # of those (and the prediction), the lowest-E_O ones that get a short fit
+    init_places: int = 3  # derived masks: places (foreground parts of the object's size) registered in a search
+    # orientation checks: every axis-aligned turn of the mesh scored by E_O where a track starts, ...
+    check_orientations: bool = True
+    recheck_move_fraction: float = 0.25  # ... where the object first moves this fraction of its size from there, ...
+    recheck_energy_ratio: float = 1.5  # ... and where E_O stays above this times its value at the last check ...
+    recheck_frames: int = 5  # ... for this many frames
     # Adam's step sizes (every fit's)
     lr_rotation: float = 0.02  # Adam step size of the 6D rotation parameters
     lr_translation: float = 0.004  # Adam step size of the centroid's position (m)
@@ -66,6 +72,9 @@ class ObjectConfig:
     # (dark floors lose much of their depth)
     bridge_fraction: float = 0.006  # derived masks: join object fragments this far apart (fraction of image width)
     near_margin_m: float = 0.05  # derived masks: object pixels lie within this (m) of the predicted bounding sphere
+    # derived masks without person masks: a search over a whole view leaves out the person's head, trunk, arms
+    # and legs drawn from the run's keypoints of at least this confidence (0-1; above 1: not left out)
+    person_keypoint_confidence: float = 0.3
     # the run: checkpoints, pictures, seams
     checkpoint_every: int = 10  # frames between saves of a chunk's progress (OUT/object/progress_LO_HI.npz)
     overlay_every: int = 10  # an overlay picture (OUT/object/overlays/) every this many frames

@@ -34,7 +34,7 @@ from intercap.geometry.cameras import project
 from intercap.geometry.pointclouds import open3d_threads
 from intercap.geometry.rendering import Capacity, MeshTopology, render
 from intercap.geometry.symmetry import (axis_angle_matrix, equivalent_pose, mesh_symmetry,
-                                        rotation_angle_deg)
+                                        rotation_angle_deg, surface_moments)
 from intercap.stages.chunks import lockstep
 from intercap.stages.object import terms
 from intercap.stages.object.observations import Observation, ObservationReader, crop_windows
@@ -83,6 +83,36 @@ def axis_rotation(axis: np.ndarray, angle_deg: float) -> np.ndarray:
     return axis_angle_matrix(axis, np.radians(angle_deg))
 
 
+def signed_permutations() -> np.ndarray:
+    """The 24 rotations (24, 3, 3) that map the coordinate axes onto each other (the cube's group),
+    identity first."""
+    out = []
+    for perm in ([0, 1, 2], [1, 2, 0], [2, 0, 1], [1, 0, 2], [0, 2, 1], [2, 1, 0]):
+        for signs in np.ndindex(2, 2, 2):
+            M = np.zeros((3, 3))
+            M[np.arange(3), perm] = 1 - 2 * np.asarray(signs)
+            if np.linalg.det(M) > 0:
+                out.append(M)
+    return np.stack(out)
+
+
+def looks_alike(S1: np.ndarray, S2: np.ndarray, symmetry, tolerance_deg: float = 5.0) -> bool:
+    """Whether an object turned by S1 and one turned by S2 (object coordinates) look the same: S1^T S2
+    is one of its symmetries (an element of the finite group, then any turn about a continuous axis)."""
+    if len(symmetry.continuous_axes) >= 2:  # sphere-like
+        return True
+    D = S1.T @ S2
+    for G in symmetry.rotations:
+        rest = G.T @ D
+        if symmetry.continuous_axes:
+            a = np.asarray(symmetry.continuous_axes[0], np.float64)
+            if float(a @ rest @ a) > np.cos(np.radians(tolerance_deg)):
+                return True
+        elif float(rotation_angle_deg(rest, np.eye(3))) < tolerance_deg:
+            return True
+    return False
+
+
 def spin_prediction(history: list, max_deg_per_frame: float):
     """The constant-velocity rotation for the next frame (`predict_pose`) when the last two frames
     were trusted and turned at most `max_deg_per_frame` between them (a spin), else None: a jump
@@ -126,6 +156,7 @@ class ObjectTracker(ObservationReader):
         self.model_cloud.normals = o3d.utility.Vector3dVector(np.asarray(mesh.face_normals)[face_ids])
         _, _, axes = np.linalg.svd(np.asarray(samples) - self.centroid, full_matrices=False)
         self.turns = [axis_rotation(a, angle) for a in axes for angle in (90, 180, 270)]  # (3, 3) in object coords
+        self._orientations = None  # `orientations`, found when first asked
         # renders of fixed shapes (`rendering.Capacity`), each fit step one replayed CUDA graph
         self.fixed_shapes = optim.records_graphs(self.device) and cfg.cuda_graphs
         self.fixed_fits: dict[int, FixedShapeFits] = {}  # by the number of poses fitted at once
@@ -146,6 +177,23 @@ class ObjectTracker(ObservationReader):
         """The pose that looks as (R, t) does (the object's symmetry) whose rotation is nearest `reference_R`."""
         found, centre = self.symmetry()
         return equivalent_pose(R, t, reference_R, found, centre) if found.is_symmetric else (R, t)
+
+    def orientations(self) -> list[np.ndarray]:
+        """The mesh's distinct axis-aligned orientations (object coordinates, identity first): the 24
+        rotations that map its principal axes onto each other, less those its symmetry makes look
+        alike (a box-like mesh: 6 of 24 remain; a cylinder's 3; a sphere's 1)."""
+        if self._orientations is None:
+            found, _ = self.symmetry()
+            # exact principal axes (rows): the sampled surface's are a few degrees off a box's edges
+            _, covariance = surface_moments(np.asarray(self._mesh.vertices, np.float64), self.faces)
+            A = np.linalg.eigh(covariance)[1].T
+            kept: list[np.ndarray] = []
+            for P in signed_permutations():
+                S = A.T @ P @ A
+                if not any(looks_alike(k, S, found) for k in kept):
+                    kept.append(S)
+            self._orientations = kept
+        return self._orientations
 
     # -- fitting -------------------------------------------------------------------------------
     def crops_for(self, poses: list[tuple[Observation, np.ndarray, np.ndarray]]) -> torch.Tensor:
@@ -266,6 +314,28 @@ class ObjectTracker(ObservationReader):
         centre = self.to_centre(R, t)
         return [(R @ S, self.from_centre(R @ S, centre)) for S in self.turns]
 
+    def orientation_search(self, obs: Observation, fit: "Fit"):
+        """Search, returns (Fit, energies): `fit`'s pose turned into each of the mesh's `orientations`
+        about its centre, scored by E_O; the `init_refine` lowest get a short fit, and where the best of
+        those is another orientation than the fit's, the full one, which wins where its E_O is below
+        `fit`'s. `energies`: each orientation's E_O after its short fit (infinity for those not
+        fitted), in `orientations`' order. A box seen
+        resting shows two or three sides; its quarter turn can fit them nearly as well as the truth,
+        and a tracker started there keeps it."""
+        centre = self.to_centre(fit.R, fit.t)
+        starts = [(fit.R @ S, self.from_centre(fit.R @ S, centre)) for S in self.orientations()]
+        scored = yield [(obs, R, t, 0) for R, t in starts]
+        order = np.argsort([f.energy for f in scored], kind="stable")[: self.cfg.init_refine]
+        short = yield [(obs, scored[k].R, scored[k].t, self.cfg.init_iterations) for k in order]
+        energies = np.full(len(starts), np.inf)
+        energies[order] = [f.energy for f in short]
+        winner = int(np.argmin(energies))
+        if winner == 0:  # the fit's own orientation: the fit stands as it is
+            return fit, energies
+        best = short[list(order).index(winner)]
+        (final,) = yield [(obs, best.R, best.t, None)]
+        return (final if final.energy < fit.energy else fit), energies
+
     # -- initialisation ----------------------------------------------------------------------
     def registration_hypotheses(self, points: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
         """Candidate object->world poses (R, t) registering the mesh to observed points: PCA alignments with
@@ -345,6 +415,30 @@ class ObjectTracker(ObservationReader):
             T = result.transformation  # model -> scene
             out.append((T[:3, :3], T[:3, 3]))
         return out
+
+    def locate(self, frame_id: int, places: int | None = None):
+        """Search, returns (observation, Fit or None): the object found in a frame without a prediction
+        or session masks. At each of its `candidate_places` the masks are cut round the place (with a
+        reach of the mesh's radius: a place is where its visible part is) and the mesh registered
+        there (`initialise`), then cut again round the fit (`recut`); the fit whose silhouettes agree
+        best (IoU, then E_O) wins. Without a place, the whole view's best-sized part (`initialise`).
+        `places`: how many places at most (default `init_places`)."""
+        best_obs, best = self.observe(frame_id, None), None
+        for centre in self.candidate_places(frame_id)[:places]:
+            obs = self.observe(frame_id, (np.eye(3), self.from_centre(np.eye(3), centre)), reach_m=self.radius)
+            if obs.visible_views < self.cfg.min_views:
+                continue
+            fit = yield from self.initialise(obs)
+            if fit is None:
+                continue
+            tight_obs, tight = yield from self.recut(frame_id, fit)
+            if tight is not None and tight.confidence >= fit.confidence:
+                obs, fit = tight_obs, tight
+            if best is None or (fit.confidence, -fit.energy) > (best.confidence, -best.energy):
+                best_obs, best = obs, fit
+        if best is None:
+            best = yield from self.initialise(best_obs)
+        return best_obs, best
 
     def initialise(self, obs: Observation, extra: list | None = None):
         """Search, returns a Fit or None: the best of the registration hypotheses (plus `extra`

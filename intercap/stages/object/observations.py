@@ -26,6 +26,7 @@ from intercap.geometry.segmentation import (
     components,
     fill_missing,
     foreground_mask,
+    person_from_keypoints,
     uncertain_mask,
 )
 from intercap.session.session import in_threads
@@ -118,6 +119,16 @@ class ObservationReader:
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
+        self.keypoints = None  # a `KeypointSource` (the run's detections): keeps the person out of a search
+
+    def person_hint(self, c: int, frame_id: int, depth: np.ndarray) -> np.ndarray | None:
+        """View c's person pixels drawn from its 2D keypoints (`person_from_keypoints`) where the
+        session has no person mask; None without keypoints."""
+        keypoints = None if self.keypoints is None else self.keypoints.read(c, frame_id)
+        if keypoints is None:
+            return None
+        focal = float(self.cameras.K[c, 0, 0])
+        return person_from_keypoints(keypoints, depth, focal, self.cfg.person_keypoint_confidence)
 
     def to_centre(self, R, t) -> np.ndarray:
         """The mesh centroid's world position under object->world pose (R, t)."""
@@ -203,15 +214,7 @@ class ObservationReader:
         than predicted. Without one, the component whose 3D extent best matches the
         object's. Pixels only slightly in front of the background (a chair's feet on the
         floor, a box's bottom edge) are neither object nor background: unknown."""
-        background = self._background()[c]
-        foreground = foreground_mask(depth, background)
-        known = (depth > 0) & ~(uncertain_mask(depth, background) & ~foreground)
-        person = self.session.read_mask(c, frame_id, "person")
-        gap = self._bridge_px(c)
-        # Dropouts (a dark surface loses much of its depth, speckled) would let the opening
-        # in `clean_mask` erase thin parts: fill them first where foreground surrounds them.
-        foreground = fill_missing(foreground, depth, gap)
-        candidates = clean_mask(foreground & ~person if person is not None else foreground)
+        candidates, known, gap = self._candidates(c, frame_id, depth, predicted is None)
         if predicted is not None:
             R, t = predicted
             centre = self.to_centre(R, t)
@@ -223,17 +226,61 @@ class ObservationReader:
             mask = fill_missing(mask, depth, gap) & candidates
             parts = components(mask, self.cfg.min_mask_px)  # drops specks the sphere cut off
             return (np.any(parts, axis=0) if parts else np.zeros_like(mask)), known
-        best, best_score = None, np.inf
+        sized = self._sized_parts(c, depth, candidates, gap)
+        return (min(sized, key=lambda part: part[1])[0] if sized else np.zeros_like(candidates)), known
+
+    def _candidates(self, c: int, frame_id: int, depth: np.ndarray, search: bool):
+        """View c's object candidates (the depth foreground outside the person, (H, W) bool), its
+        known labels (H, W) bool and the gap its fragments are bridged over (pixels); `search`: a
+        search over the whole view, where the person drawn from keypoints is left out too."""
+        background = self._background()[c]
+        foreground = foreground_mask(depth, background)
+        known = (depth > 0) & ~(uncertain_mask(depth, background) & ~foreground)
+        person = self.session.read_mask(c, frame_id, "person")
+        if person is None and search:  # a search over the whole view: not the person
+            person = self.person_hint(c, frame_id, depth)
+        gap = self._bridge_px(c)
+        # Dropouts (a dark surface loses much of its depth, speckled) would let the opening
+        # in `clean_mask` erase thin parts: fill them first where foreground surrounds them.
+        foreground = fill_missing(foreground, depth, gap)
+        return clean_mask(foreground & ~person if person is not None else foreground), known, gap
+
+    def _sized_parts(self, c: int, depth: np.ndarray, candidates: np.ndarray, gap: int) -> list[tuple]:
+        """The parts of view c's candidates no larger than the object could look: (mask, size score,
+        median world point) each; the score is |log| of the part's 3D extent over 0.8 of the mesh's
+        (the visible extent is a little under the full one), 0 for a perfect match."""
+        parts = []
         for cand in components(candidates, self.cfg.min_mask_px, gap):
             ys, xs = np.nonzero(cand & (depth > 0))
             points = self._pixel_points(c, ys, xs, depth[ys, xs])
             if len(points) < 20:
                 continue
             extent = np.linalg.norm(np.percentile(points, 95, 0) - np.percentile(points, 5, 0))
-            score = abs(np.log(extent / (0.8 * self.extent)))  # visible extent is a little under the full one
-            if score < best_score and extent < 1.6 * self.extent:
-                best, best_score = cand, score
-        return (best if best is not None else np.zeros_like(foreground)), known
+            if extent < 1.6 * self.extent:
+                parts.append((cand, abs(np.log(extent / (0.8 * self.extent))), np.median(points, 0)))
+        return parts
+
+    def candidate_places(self, frame_id: int) -> list[np.ndarray]:
+        """World points (3,) where the object may be in this frame, most likely first, at most
+        `init_places`: each view's foreground parts of about the object's size (`_sized_parts`);
+        parts of several views within the object's radius of one another are one place, ranked by
+        how many views see it, then by how well its size matches. A part of a leg can match a box's
+        size in one view; the box is seen by more."""
+        found = []
+        for c in range(len(self.sizes)):
+            depth = self.session.read_depth(c, frame_id)
+            if depth is not None:
+                candidates, _, gap = self._candidates(c, frame_id, depth, True)
+                found += [(score, c, centre) for _, score, centre in self._sized_parts(c, depth, candidates, gap)]
+        places: list[list] = []  # [centre, views, best score]
+        for score, c, centre in sorted(found, key=lambda part: part[0]):
+            near = next((p for p in places if np.linalg.norm(p[0] - centre) < self.radius), None)
+            if near is None:
+                places.append([centre, {c}, score])
+            else:
+                near[1].add(c)
+        places.sort(key=lambda p: (-len(p[1]), p[2]))
+        return [p[0] for p in places[: self.cfg.init_places]]
 
     def _bridge_px(self, c: int) -> int:
         """Gap (pixels) bridged between fragments of the object's depth foreground in view c."""

@@ -8,7 +8,12 @@ the prediction (`intercap.stages.object.observations`).
 
 The first pose comes from session.yaml when given, else from registering the mesh to the first
 frame's object points (`ObjectTracker.initialise`: PCA and FPFH starts, ICP, the best one's
-quarter turns; the lowest E_O after a short fit wins). A fit whose silhouette IoU (over pixels
+quarter turns; the lowest E_O after a short fit wins). Where a track starts, where the object first
+moves (a grasp shows its sides) and where E_O stays high, every axis-aligned orientation of the mesh
+(its symmetries left out) is fitted and scored by E_O (`check_orientation`): a box resting on a
+table shows two or three sides, and its quarter turn can fit those nearly as well. Without person
+masks, a search over a whole view leaves out the person drawn from the run's keypoints (a head is a
+box-sized blob of depth foreground). A fit whose silhouette IoU (over pixels
 not hidden by something in front) is low or whose E_O jumps above its recent level is searched
 again: locally (quarter turns about the mesh's principal axes: a chair's seat and legs look alike
 every 90 deg), then by registration. Frames whose best fit still disagrees with the observations,
@@ -43,20 +48,25 @@ from intercap.stages.object.observations import hard_silhouettes
 log = logging.getLogger(__name__)
 
 TRACKED, REINITIALISED, LOST, UNTRUSTED = 1, 2, 3, 4
+# why a frame's orientation was checked (`check_orientation`): 0 not checked
+AT_START, AT_FIRST_MOVE, AT_HIGH_ENERGY = 1, 2, 3
+CHECK_NAMES = {AT_START: "start", AT_FIRST_MOVE: "first_move", AT_HIGH_ENERGY: "high_energy"}
 STATUS_NAMES = {0: "pending", TRACKED: "tracked", REINITIALISED: "reinitialised", LOST: "lost", UNTRUSTED: "untrusted"}
 FEW_TRUSTED = 0.5  # the run warns when the object is trusted in fewer than this share of frames
 
 
-def untracked(T: int) -> dict[str, np.ndarray]:
-    """`track_steps`'s state of T frames not yet tracked (status 0, pending)."""
+def untracked(T: int, orientations: int) -> dict[str, np.ndarray]:
+    """`track_steps`'s state of T frames not yet tracked (status 0, pending); `orientations`: how many
+    the mesh has (`ObjectTracker.orientations`), each a column of the checks' energies."""
     return {"R": np.full((T, 3, 3), np.nan), "t": np.full((T, 3), np.nan), "confidence": np.zeros(T),
-            "status": np.zeros(T, np.int64), "energy": np.full(T, np.nan), "confirmed": np.zeros(T, bool)}
+            "status": np.zeros(T, np.int64), "energy": np.full(T, np.nan), "confirmed": np.zeros(T, bool),
+            "checked": np.zeros(T, np.int64), "orientation_energy": np.full((T, orientations), np.nan)}
 
 
-def resumed(checkpoint: Checkpoint | None, T: int, queue) -> tuple[dict, int]:
+def resumed(checkpoint: Checkpoint | None, T: int, orientations: int, queue) -> tuple[dict, int]:
     """`track_steps`'s state of T frames and the first frame to track: from `checkpoint` where it
     holds T frames' progress, else untracked from frame 0. The frames resumed are put on `queue`."""
-    state, start = untracked(T), 0
+    state, start = untracked(T, orientations), 0
     saved = checkpoint.load() if checkpoint is not None else None
     if saved is not None and len(saved["status"]) == T:
         state = {k: saved[k] if k in saved else state[k] for k in state}
@@ -103,13 +113,19 @@ def energy_level(state: dict, i: int, cfg) -> float:
 
 
 def search_frame(tracker: ObjectTracker, obs, frame_id: int, predicted, reach: float, good, state: dict, i: int):
-    """Search: frame i's (fit, status) from `predicted` (registration without one): the fit from
-    the prediction, recut round the fit where the mask was cut wide, then, while not `good`,
+    """Search: frame i's (observation, fit, status) from `predicted`; without one, registration
+    (`initialise`, or with derived masks `locate`: the object's likely places, each registered). The
+    fit from the prediction, recut round the fit where the mask was cut wide, then, while not `good`,
     `refit` and registration (`initialise`); a registration no better than `confirm_ratio` of the
-    tracked E_O confirms it (`state["confirmed"][i]`)."""
+    tracked E_O confirms it (`state["confirmed"][i]`). The observation is the one the fit used."""
     cfg = tracker.cfg
     if predicted is None:
-        return (yield from tracker.initialise(obs)), REINITIALISED
+        if tracker.use_masks:
+            return obs, (yield from tracker.initialise(obs)), REINITIALISED
+        # while the object stays lost: its likeliest place alone, every place each `recheck_frames`
+        lost_before = i > 0 and state["status"][i - 1] not in (TRACKED, REINITIALISED)
+        obs, fit = yield from tracker.locate(frame_id, 1 if lost_before and i % cfg.recheck_frames else None)
+        return obs, fit, REINITIALISED
     (fit,), status = (yield [(obs, *predicted, None)]), TRACKED
     if reach > cfg.near_margin_m and not tracker.use_masks:
         # A mask cut this wide round the prediction takes in the hands and arms of a
@@ -127,14 +143,60 @@ def search_frame(tracker: ObjectTracker, obs, frame_id: int, predicted, reach: f
             state["confirmed"][i] = not better
             if alternative is not None and alternative.energy < fit.energy:
                 fit, status = alternative, REINITIALISED
-    return fit, status
+    return obs, fit, status
 
 
-def trusted_pose(tracker: ObjectTracker, fit, history: list, i: int, reference: float, good):
+def orientation_check_due(tracker: ObjectTracker, fit, history: list, state: dict, i: int) -> int:
+    """Why frame i's orientation is to be checked (`AT_START`, `AT_FIRST_MOVE`, `AT_HIGH_ENERGY`), or 0:
+    a track starts here (no trusted pose in the last `coast_frames`; while none is found, every
+    `recheck_frames`); the object has moved
+    `recheck_move_fraction` of its size from where the track's start check saw it, for the first
+    time (a grasp shows its sides); or E_O has stayed above `recheck_energy_ratio` times its value at
+    the last check for `recheck_frames` frames."""
+    cfg = tracker.cfg
+    if not cfg.check_orientations or fit is None:
+        return 0
+    checks = np.flatnonzero(state["checked"][:i])
+    if not any(h is not None for h in history[max(0, i - cfg.coast_frames):i]):
+        # (while the object stays lost, not every frame: once per `recheck_frames`)
+        return AT_START if not len(checks) or i - checks[-1] >= cfg.recheck_frames else 0
+    starts = checks[state["checked"][checks] == AT_START]
+    if not len(starts):
+        return 0
+    k = int(checks[-1])
+    if not (state["checked"][starts[-1]:i] == AT_FIRST_MOVE).any() and history[starts[-1]] is not None:
+        moved = np.linalg.norm(tracker.to_centre(fit.R, fit.t) - tracker.to_centre(*history[starts[-1]]))
+        if moved > cfg.recheck_move_fraction * tracker.extent:
+            return AT_FIRST_MOVE
+    recent = state["energy"][max(k + 1, i - cfg.recheck_frames + 1):i]
+    if i - k >= cfg.recheck_frames and len(recent) == cfg.recheck_frames - 1 and np.all(
+            np.concatenate([recent, [fit.energy]]) > cfg.recheck_energy_ratio * state["energy"][k]):
+        return AT_HIGH_ENERGY
+    return 0
+
+
+def check_orientation(tracker: ObjectTracker, obs, fit, history: list, state: dict, i: int):
+    """Search, returns (fit, turned): frame i's fit, from `ObjectTracker.orientation_search` where a check
+    is due (`orientation_check_due`; the best orientation wins at a track's start, elsewhere only
+    where its E_O is below `confirm_ratio` of the fit's); turned: the orientation changed."""
+    why = orientation_check_due(tracker, fit, history, state, i)
+    if not why:
+        return fit, False
+    best, energies = yield from tracker.orientation_search(obs, fit)
+    state["checked"][i], state["orientation_energy"][i] = why, energies
+    if best is fit or (why != AT_START and best.energy > tracker.cfg.confirm_ratio * fit.energy):
+        return fit, False
+    log.info("object: frame %d: orientation checked (%s): E_O %.4g -> %.4g", i, CHECK_NAMES[why], fit.energy,
+             best.energy)
+    return best, True
+
+
+def trusted_pose(tracker: ObjectTracker, fit, history: list, i: int, reference: float, good, turned: bool = False):
     """Frame i's pose from `fit` where it is trusted (E_O within `trust_energy_ratio` of the level:
     a hand closing round the object raises E_O a little), turned like the last trusted pose
     (`hold_symmetric_turn`); None where it is not, or where it turned too fast (`turned_too_fast`)
-    unless it fits clearly better than the frames before (a turn back)."""
+    unless it fits clearly better than the frames before (a turn back) or an orientation check
+    turned it (`turned`)."""
     cfg = tracker.cfg
     if not good(fit, cfg.trust_energy_ratio):
         return None
@@ -142,7 +204,7 @@ def trusted_pose(tracker: ObjectTracker, fit, history: list, i: int, reference: 
     last_at = next((j for j in range(i - 1, -1, -1) if history[j] is not None), None)
     if last_at is not None and cfg.hold_symmetric_turn:
         pose = tracker.turned_like(*pose, history[last_at][0])
-    if (last_at is not None
+    if (last_at is not None and not turned
             and turned_too_fast(pose[0], history[last_at][0], i - last_at, cfg.max_turn_deg_per_frame,
                                 spin_prediction(history, cfg.max_turn_deg_per_frame))
             and fit.energy > cfg.fast_turn_energy_ratio * reference):
@@ -169,10 +231,12 @@ def track_frame(tracker: ObjectTracker, frame_ids: np.ndarray, i: int, history: 
         """Silhouettes agree and E_O is not far above its level in recent trusted frames."""
         return f is not None and f.confidence >= cfg.min_confidence and f.energy <= ratio * reference
 
-    fit, status = None, LOST
+    fit, status, turned = None, LOST, False
     if obs.visible_views >= cfg.min_views:
-        fit, status = yield from search_frame(tracker, obs, frame_id, predicted, reach, good, state, i)
-    return fit, trusted_pose(tracker, fit, history, i, reference, good), status
+        obs, fit, status = yield from search_frame(tracker, obs, frame_id, predicted, reach, good, state, i)
+        if fit is not None:
+            fit, turned = yield from check_orientation(tracker, obs, fit, history, state, i)
+    return fit, trusted_pose(tracker, fit, history, i, reference, good, turned), status
 
 
 def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Checkpoint | None = None,
@@ -199,7 +263,7 @@ def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Check
     finished frame is put on it (`intercap.parallel`)."""
     cfg = tracker.cfg
     T = len(frame_ids)
-    state, start = resumed(checkpoint, T, queue)
+    state, start = resumed(checkpoint, T, len(tracker.orientations()), queue)
     history = [None if state["status"][i] not in (TRACKED, REINITIALISED) else (state["R"][i], state["t"][i])
                for i in range(start)]
     for i in range(start, T):
@@ -264,7 +328,7 @@ def join_seams(tracker: ObjectTracker, frame_ids: np.ndarray, state: dict, start
                 if stale != checkpoint.path:
                     stale.unlink()
             if not checkpoint.exists():
-                pending = untracked(hi - lo)
+                pending = untracked(hi - lo, len(tracker.orientations()))
                 checkpoint.save(next=lo - a, **{key: np.concatenate([prefix[key], pending[key]]) for key in prefix})
 
             def agrees(i: int, sub: dict, a=a, lo=lo) -> bool:
@@ -291,6 +355,19 @@ def join_seams(tracker: ObjectTracker, frame_ids: np.ndarray, state: dict, start
                 state[key][tracked:hi] = chunk_state[key][tracked:hi]
 
 
+def run_tracker(session, cfg, out_dir: Path) -> ObjectTracker:
+    """The run's tracker: the session's object, with the run's keypoints (the session's or the
+    `detect` stage's, where it ran) to keep the person out of its searches."""
+    from intercap.stages.body.observations import KeypointSource
+
+    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh(), device=cfg.run.device)
+    try:
+        tracker.keypoints = KeypointSource(session, out_dir)
+    except RuntimeError:  # no keypoints yet (the object stage run alone): searches see the person too
+        tracker.keypoints = None
+    return tracker
+
+
 def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) -> list[dict[str, np.ndarray]]:
     """`track_steps` over each chunk's frames [lo, hi), the chunks side by side (`run_searches`),
     in a worker (`intercap.parallel`): a chunk after the first starts without a prediction, from
@@ -300,7 +377,7 @@ def track_chunks(session, cfg, out_dir: Path, chunks: tuple[Chunk, ...], queue) 
 
     session = open_session(session, out_dir)
     torch.manual_seed(cfg.object.seed)
-    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh(), device=cfg.run.device)
+    tracker = run_tracker(session, cfg, out_dir)
     searches = [track_steps(tracker, session.frame_ids[c.lo:c.hi], Checkpoint.of_chunk(out_dir, "object", c),
                             session.object.initial_pose if c.lo == 0 else None, queue) for c in chunks]
     return run_searches(tracker, searches)
@@ -313,7 +390,7 @@ def stitched(session, cfg, stage_dir: Path, starts: list[int]):
     def stitch(results: list) -> tuple[ObjectTracker, dict, int]:
         parts = [part for group in results for part in group]
         state = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
-        tracker = ObjectTracker(session, cfg.object, session.object.load_mesh(), device=cfg.run.device)
+        tracker = run_tracker(session, cfg, stage_dir.parent)
         state, retracked = join_seams(tracker, session.frame_ids, state, starts, stage_dir) if starts else (state, 0)
         return tracker, state, retracked
 
@@ -381,4 +458,16 @@ def outputs(session, tracker: ObjectTracker, state: dict, valid: np.ndarray, sea
         "mean_confidence": float(state["confidence"][valid].mean()) if valid.any() else 0.0,
         "seams": seams,
         "seam_frames_tracked_again": retracked,
+        **orientation_figures(session, state),
     }
+
+
+def orientation_figures(session, state: dict) -> dict:
+    """The orientation checks (`check_orientation`) for metrics and the report: how many, and per check its
+    frame, why, and each orientation's E_O after its short fit, lowest first (None: not fitted)."""
+    checks = []
+    for i in map(int, np.flatnonzero(state["checked"])):
+        energies = np.sort(state["orientation_energy"][i])
+        checks.append({"frame": int(session.frame_ids[i]), "why": CHECK_NAMES[int(state["checked"][i])],
+                       "energies": [round(float(e), 5) if np.isfinite(e) else None for e in energies]})
+    return {"orientation_checks": len(checks), "orientation_hypotheses": checks}

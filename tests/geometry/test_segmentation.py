@@ -1,0 +1,34 @@
+"""Person pixels drawn from 2D keypoints: the person's head and trunk, not what stands in front of them."""
+import cv2
+import numpy as np
+
+from intercap.geometry.segmentation import person_from_keypoints
+
+
+def keypoints_at(points: dict) -> np.ndarray:
+    """(137, 3) OpenPose keypoints: the given BODY_25 ones at confidence 0.9, the rest unseen."""
+    kp = np.zeros((137, 3), np.float32)
+    for index, (x, y) in points.items():
+        kp[index] = (x, y, 0.9)
+    return kp
+
+
+def test_person_from_keypoints_takes_the_person_and_leaves_a_box_in_front():
+    """A person 2 m away (head, trunk, one arm down to a hand) before a wall at 3 m, and a box held
+    0.4 m in front of his belly: the head and trunk are the person's, the box is not (its depth lies
+    outside the trunk's band), nor is the hand's end of the arm or the wall."""
+    H, W, focal = 240, 320, 250.0
+    depth = np.full((H, W), 3.0, np.float32)
+    cv2.rectangle(depth, (140, 60), (180, 150), 2.0, -1)  # trunk
+    cv2.circle(depth, (160, 45), 12, 2.0, -1)  # head
+    cv2.rectangle(depth, (181, 62), (186, 150), 2.0, -1)  # right arm, hanging
+    cv2.rectangle(depth, (145, 110), (175, 135), 1.6, -1)  # the box in front of the belly
+    kp = keypoints_at({0: (160, 42), 1: (160, 60), 8: (160, 145), 2: (183, 62), 5: (140, 62), 9: (170, 148),
+                       12: (150, 148), 3: (183, 105), 4: (183, 148)})
+    person = person_from_keypoints(kp, depth, focal)
+    assert person[45, 160] and person[80, 160] and person[100, 150]  # head, chest, trunk beside the box
+    assert not person[120:130, 150:170].any()  # the box
+    assert not person[10, 10] and not person[200, 160]  # the wall
+    unseen = kp.copy()
+    unseen[:, 2] = 0.1
+    assert not person_from_keypoints(unseen, depth, focal).any()  # below the confidence: nothing drawn

@@ -13,6 +13,13 @@ if ! command -v chromium >/dev/null 2>&1; then
     { $SUDO apt-get update -qq && $SUDO apt-get install -y -qq chromium >/dev/null; } \
         || echo "setup.sh: chromium not installed; the browser tests will be skipped" >&2
 fi
+# three.js and the Khronos glTF validator (npm) into the ignored .cache/npm, for the tests of the animated
+# .glb export (they skip without them).
+if command -v npm >/dev/null 2>&1 && { [ ! -f .cache/npm/node_modules/three/package.json ] \
+        || [ ! -f .cache/npm/node_modules/gltf-validator/package.json ]; }; then
+    npm install -q --prefix .cache/npm --no-audit --no-fund three@0.187.0 gltf-validator@2.0.0-dev.3.10 >/dev/null \
+        || echo "setup.sh: three / gltf-validator not installed; the glb tests that need them will be skipped" >&2
+fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null
 .venv/bin/python -m pip install -q -e '.[test,ray]'  # ray: run-many's test runs on local Ray

@@ -3,7 +3,11 @@
 Needs the optional `smplx` package (`pip install intercap[smplx]`) and a folder
 with SMPLX_NEUTRAL.npz (or .pkl); SMPL-X's own licence applies to those files.
 Model coordinates are SMPL-X's (y up, facing +z); world vertices are
-``R(global_orient) @ v + transl`` like every backend here.
+``R(global_orient) @ v + transl`` like every backend here: the rotation is about
+the model's origin. smplx itself rotates about the pelvis (the root joint of the
+shaped rest pose, j0) and then adds its transl, so the same body in smplx's own
+arguments has transl_smplx = transl + R j0 - j0 (`smplx_transl`,
+`SmplxBody.smplx_parameters`, what the export writes as smplx_*).
 """
 from __future__ import annotations
 
@@ -12,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from intercap.body_models.base import BodyModel, BodyOutput, BodyParams
+from intercap.body_models.base import BodyModel, BodyOutput, BodyParams, axis_angle_to_matrix
 from intercap.body_models.keypoints import NUM_ALL
 from intercap.body_models.regions import contact_regions, farthest_point_subsample, palm_normal
 
@@ -41,6 +45,27 @@ def _hand_from_smplx(side: str) -> list[int]:
     return ids
 
 
+def smplx_transl(global_orient: torch.Tensor, transl: torch.Tensor, pelvis: torch.Tensor) -> torch.Tensor:
+    """(B, 3) transl that smplx's forward needs to give our world vertices. Ours: R v + t, with v
+    the body posed with no root rotation. smplx: its root joint's transform rotates the body about
+    the rest pelvis j0 and keeps j0 in place, then adds transl: R (v - j0) + j0 + t_smplx. Equal for
+    every v when t_smplx = t + R j0 - j0. global_orient is the same in both."""
+    rotation = axis_angle_to_matrix(global_orient)  # (B, 3, 3)
+    return transl + (rotation @ pelvis[..., None])[..., 0] - pelvis
+
+
+def model_file(model_dir, gender: str = "neutral") -> Path:
+    """The SMPL-X model file for `gender`: SMPLX_<GENDER>.npz (or .pkl) in `model_dir` itself or in its
+    smplx/ folder (the layout smplx's own `create` expects of a folder)."""
+    for folder in (Path(model_dir), Path(model_dir) / "smplx"):
+        for ext in ("npz", "pkl"):
+            path = folder / f"SMPLX_{gender.upper()}.{ext}"
+            if path.is_file():
+                return path
+    raise FileNotFoundError(f"no SMPLX_{gender.upper()}.npz or .pkl in {model_dir} or {Path(model_dir) / 'smplx'} "
+                            "(files from the SMPL-X website, under their licence)")
+
+
 class SmplxBody(BodyModel):
     name = "smplx"
 
@@ -56,7 +81,7 @@ class SmplxBody(BodyModel):
                 "holding SMPLX_NEUTRAL.npz (files from the SMPL-X website, under their licence)"
             )
         self.core = smplx.create(
-            str(model_dir), model_type="smplx", gender=gender, use_pca=False, flat_hand_mean=True,
+            str(model_file(model_dir, gender)), model_type="smplx", gender=gender, use_pca=False, flat_hand_mean=True,
             num_betas=num_betas, num_expression_coeffs=num_expression, use_face_contour=False,
         ).to(dtype=dtype)
         self.joint_names = JOINTS + [f"left_{h}" for h in HAND] + [f"right_{h}" for h in HAND]
@@ -112,6 +137,34 @@ class SmplxBody(BodyModel):
             if joint.startswith(prefix) and joint[len(prefix):] in HAND:
                 return side, HAND.index(joint[len(prefix):])
         return "body", self.body_joint_names.index(joint)
+
+    def rest_pelvis(self, params: BodyParams) -> torch.Tensor:
+        """(B, 3) the root joint of the shaped rest pose (betas and expression; the pose does not move
+        it), model coordinates: where smplx's global_orient rotates about."""
+        batch = params.batch_size
+
+        def zeros(n):
+            return torch.zeros(batch, n, dtype=self.dtype, device=params.shape.device)
+
+        # every pose given (smplx's own defaults have batch size 1)
+        out = self.core(betas=params.shape, expression=params.expression, global_orient=zeros(3), transl=zeros(3),
+                        body_pose=zeros(63), jaw_pose=zeros(3), leye_pose=zeros(3), reye_pose=zeros(3),
+                        left_hand_pose=zeros(45), right_hand_pose=zeros(45), return_verts=False)
+        return out.joints[:, 0]
+
+    def smplx_parameters(self, params: BodyParams) -> dict[str, torch.Tensor]:
+        """Our parameters as smplx's own forward arguments (for `smplx.create(model_type="smplx",
+        use_pca=False, flat_hand_mean=True)` with this model's num_betas and num_expression_coeffs):
+        the same vertices, with transl moved to smplx's rotation about the pelvis."""
+        batch = params.batch_size
+        body = params.body_pose  # (B, 24, 3): 21 body joints, jaw, left eye, right eye
+        return {
+            "betas": params.shape, "global_orient": params.global_orient,
+            "transl": smplx_transl(params.global_orient, params.transl, self.rest_pelvis(params)),
+            "body_pose": body[:, :21].reshape(batch, -1), "jaw_pose": body[:, 21], "leye_pose": body[:, 22],
+            "reye_pose": body[:, 23], "left_hand_pose": params.left_hand_pose.reshape(batch, -1),
+            "right_hand_pose": params.right_hand_pose.reshape(batch, -1), "expression": params.expression,
+        }
 
     def forward(self, params: BodyParams) -> BodyOutput:
         batch = params.batch_size

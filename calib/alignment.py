@@ -9,7 +9,10 @@ directions the overlap constrains, with its uncertainty: a pair is flagged
 only when that correction is both large and many times its standard deviation.
 Points are matched only where both views' normals (each turned to its own
 camera) agree: two cameras far apart see two sides of an arm or a box, whose
-nearest points are close but are not one surface (tools/bench_calibration_check).
+nearest points are close but are not one surface (tools/bench_calibration_check);
+and only where the target view saw the surface under the point: not at or beyond
+the edge of what it covers (an image border, the shadow a table or a shelf casts
+on the floor), where every offset leans outward and an exact rig reads as drifted.
 """
 from __future__ import annotations
 
@@ -200,14 +203,26 @@ def voxel_average(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return np.asarray(cloud.voxel_down_sample(float(voxel_size)).points)
 
 
-def local_planes(points: np.ndarray, radius: float, neighbours: int = 16, max_flatness: float = 0.08):
+# A point on the edge of what its view covers: its neighbours' centroid lies off it by this share of their spread.
+EDGE_OFFSET = 0.55
+# The farthest a matched point may lie from the target's sample along the sample's tangent plane, as a share
+# of the radius the planes are fitted over (3 cm at the check's 10 cm): the plane is the surface near its sample.
+LATERAL_REACH = 0.3
+
+
+def local_planes(points: np.ndarray, radius: float, neighbours: int = 16, max_flatness: float = 0.08,
+                 max_edge_offset: float = EDGE_OFFSET):
     """Tangent planes of a cloud (N, 3): the points, unit normals (N, 3) from the PCA
-    of their `neighbours` nearest points within `radius`, and (N,) ok where at least 6
+    of their `neighbours` nearest points within `radius`, (N,) ok where at least 6
     neighbours were found and the patch is flat (smallest / total variance at most
-    max_flatness: edges, corners and thin parts give no trustworthy normal)."""
+    max_flatness: edges, corners and thin parts give no trustworthy normal), and (N,) edge
+    where the point lies on the edge of what the cloud covers (an image border, an occlusion's
+    shadow, a surface's outline): its neighbours' centroid lies off it, in their plane, by more
+    than max_edge_offset x their in-plane spread (on a regular sampling, 16 neighbours: about 0.55 on
+    its outermost row, 0 inside; depth noise spreads both), or fewer than 6 neighbours."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(pts) < 6:
-        return pts, np.zeros_like(pts), np.zeros(len(pts), bool)
+        return pts, np.zeros_like(pts), np.zeros(len(pts), bool), np.ones(len(pts), bool)
     k = min(neighbours, len(pts))
     dist, idx = cKDTree(pts).query(pts, k=k, distance_upper_bound=radius)
     found = np.isfinite(dist)  # (N, k)
@@ -221,8 +236,13 @@ def local_planes(points: np.ndarray, radius: float, neighbours: int = 16, max_fl
     ev, vec = np.linalg.eigh(cov)  # ascending
     normals = vec[..., 0]
     flat = ev[:, 0] / np.maximum(ev.sum(axis=1), 1e-18)
-    ok = (found.sum(axis=1) >= 6) & (flat <= max_flatness)
-    return pts, normals, ok
+    enough = found.sum(axis=1) >= 6
+    ok = enough & (flat <= max_flatness)
+    off = mean - pts
+    off -= (off * normals).sum(axis=1, keepdims=True) * normals  # (N, 3) in the tangent plane
+    spread = np.sqrt(np.maximum(ev[:, 1] + ev[:, 2], 1e-18))
+    edge = ~enough | (np.linalg.norm(off, axis=1) > max_edge_offset * spread)
+    return pts, normals, ok, edge
 
 
 MIN_NORMAL_COS = math.cos(math.radians(45.0))
@@ -239,6 +259,8 @@ class _ViewFrame:
     tree: cKDTree | None
     point_sigma: np.ndarray  # (N,) expected depth noise of the points (metres)
     plane_sigma: np.ndarray  # (M,)
+    plane_edge: np.ndarray  # (M,) on the edge of what the view covers (`local_planes`)
+    reach: float  # farthest (m) a matched point may lie from a plane's sample along the plane
 
 
 def depth_noise(distance: np.ndarray) -> np.ndarray:
@@ -253,21 +275,28 @@ def _view_frame(points: np.ndarray, voxel_size: float, plane_radius: float, name
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"check_calibration: points of view {name!r} must be (N, 3), got {pts.shape}")
     pts = voxel_average(pts, voxel_size)
-    q, n, ok = local_planes(pts, plane_radius)
+    q, n, ok, edge = local_planes(pts, plane_radius)
     to_camera = np.asarray(centre, float) - q
     n = np.where(((n * to_camera).sum(axis=1) < 0)[:, None], -n, n) * ok[:, None]
     sigma = depth_noise(np.linalg.norm(to_camera, axis=1))
-    return _ViewFrame(pts, n, q[ok], n[ok], cKDTree(q[ok]) if ok.any() else None, sigma, sigma[ok])
+    return _ViewFrame(pts, n, q[ok], n[ok], cKDTree(q[ok]) if ok.any() else None, sigma, sigma[ok], edge[ok],
+                      LATERAL_REACH * plane_radius)
 
 
 def _correspondences(src: list[_ViewFrame], tgt: list[_ViewFrame], T: np.ndarray, max_distance: float,
-                     min_normal_cos: float = MIN_NORMAL_COS):
+                     min_normal_cos: float = MIN_NORMAL_COS, within_coverage: bool = True):
     """Point-to-plane correspondences of the moved source points with the target planes, frame by
     frame (a moving person only matches itself in the same instant): moved points (K, 3),
     normals (K, 3), signed residuals (K,), frame index (K,), expected residual sigma (K,).
     Both views' normals face their own camera, so a surface both see has normals that agree;
     pairs whose normals differ by more than acos(min_normal_cos) are two sides of a thin part
-    (an arm, a box wall) seen from two cameras, whose distance says nothing about calibration."""
+    (an arm, a box wall) seen from two cameras, whose distance says nothing about calibration.
+    A point whose nearest target sample lies on the edge of what the target view covers, or
+    farther from it along its plane than the target's `reach`, is where the target saw nothing
+    (beyond an image border, in an occlusion's shadow: one view sees floor the other does not):
+    its offset from the last plane the target saw is no residual, and all such offsets lean the
+    same way (outward), which on an exact rig reads as a shift of several millimetres; those are left
+    out `within_coverage` (the check; the refinement keeps them)."""
     qs, ns, rs, fs, ss = [], [], [], [], []
     for f, (s, t) in enumerate(zip(src, tgt)):
         if t.tree is None or len(s.points) == 0:
@@ -276,6 +305,11 @@ def _correspondences(src: list[_ViewFrame], tgt: list[_ViewFrame], T: np.ndarray
         d, i = t.tree.query(q, k=1, distance_upper_bound=max_distance)
         hit = np.isfinite(d)
         hit[hit] = (s.point_normals[hit] @ T[:3, :3].T * t.normals[i[hit]]).sum(axis=1) >= min_normal_cos
+        if within_coverage:
+            hit[hit] = ~t.plane_edge[i[hit]]
+            offset = q[hit] - t.planes[i[hit]]
+            along_normal = (offset * t.normals[i[hit]]).sum(axis=1)
+            hit[hit] = np.linalg.norm(offset - along_normal[:, None] * t.normals[i[hit]], axis=1) <= t.reach
         n = t.normals[i[hit]]
         r = ((q[hit] - t.planes[i[hit]]) * n).sum(axis=1)
         qs.append(q[hit]), ns.append(n), rs.append(r), fs.append(np.full(len(r), f))
@@ -329,7 +363,7 @@ def view_frames(pool, per_frame: list, names: list[str], centers: np.ndarray, vo
 
 def observable_icp(source: list[_ViewFrame], target: list[_ViewFrame], matches: tuple, keep: np.ndarray,
                    centre: np.ndarray, radius: float, max_distance: float, iterations: int, min_overlap: int,
-                   refine_mm: float, refine_deg: float):
+                   goes_on):
     """(T (4, 4), the correspondences (q, n, r, frames, sigma) under T) of robust point-to-plane ICP in the
     observable directions `keep`, from identity and its correspondences `matches`; None when the overlap
     falls below min_overlap.
@@ -337,7 +371,7 @@ def observable_icp(source: list[_ViewFrame], target: list[_ViewFrame], matches: 
     One Gauss-Newton step from the calibrated pose measures a drift within max_distance directly.
     Re-associating nearest neighbours on noisy slabs (depth noise of ~1-3 cm at 3-4 m) walks by
     several mm on an exact calibration, so further ICP iterations only size a drift whose first
-    step is already clear evidence (above refine_mm / refine_deg)."""
+    step is already evidence: `goes_on(T)` of the first step's correction (`first_step_gate`)."""
     q, n, r, fr, sg = matches
     T = np.eye(4)
     for it in range(iterations):
@@ -353,10 +387,26 @@ def observable_icp(source: list[_ViewFrame], target: list[_ViewFrame], matches: 
         q, n, r, fr, sg = _correspondences(source, target, T, max_distance)
         if len(r) < min_overlap:
             return None
-        first_mm, first_deg = correction_size(T, centre)
-        if step < 1e-5 or (it == 0 and first_mm <= refine_mm and first_deg <= refine_deg):
+        if step < 1e-5 or (it == 0 and not goes_on(T)):
             break
     return T, (q, n, r, fr, sg)
+
+
+def first_step_gate(cov: np.ndarray, keep: np.ndarray, centre: np.ndarray, radius: float, refine_mm: float,
+                    refine_deg: float, k_sigma: float):
+    """When ICP goes on past its first step (`observable_icp`): the step's correction T moves the
+    overlap's centre more than refine_mm (or turns more than refine_deg), or by k_sigma standard
+    deviations of itself, `cov` (6, 6) being the step's covariance (the sandwich at the calibrated
+    pose). On noisy depth a first step falls short of a drift (a camera turned 0.5 deg reads 0.3 deg
+    at 30 sigma, just under the size gate), while on an exact rig it is within a few sigma."""
+    def goes_on(T: np.ndarray) -> bool:
+        mm, deg = correction_size(T, centre)
+        x = keep @ keep.T @ scaled_twist(T, centre, radius)
+        sigma_mm = _sigma_along(cov[3:, 3:], x[3:]) * 1000
+        sigma_deg = math.degrees(_sigma_along(cov[:3, :3], x[:3]) / radius)
+        return mm > refine_mm or deg > refine_deg or mm > k_sigma * sigma_mm or deg > k_sigma * sigma_deg
+
+    return goes_on
 
 
 def sandwich_covariance(q, n, r, fr, w, keep: np.ndarray, centre: np.ndarray, radius: float,
@@ -393,10 +443,11 @@ def pair_agreement(
 ) -> PairAgreement:
     """Agreement of view a's points (one (N, 3) array per frame) with view b's planes (same frames).
 
-    Robust point-to-plane ICP from identity, each frame matched with its own frame. The
-    correction is solved only in the directions the overlap constrains (eigenvalues of the
-    normal matrix at least min_constraint x the largest; a floor alone leaves its two in-plane
-    translations and the rotation about its normal free), and its uncertainty is the
+    Robust point-to-plane ICP from identity, each frame matched with its own frame, iterated past its
+    first step only when that step is evidence (`first_step_gate`). The correction is solved only in
+    the directions the overlap constrains (eigenvalues of the normal matrix at least min_constraint x
+    the largest; a floor alone leaves its two in-plane translations and the rotation about its normal
+    free), and its uncertainty is the
     cluster-robust ("sandwich") covariance over blocks of block_size metres per frame, since
     neighbouring residuals share sampling and sensor errors. Flagged only on clear evidence:
     correction above k_sigma of its standard deviation AND above min_mm (or both for min_deg), and
@@ -422,8 +473,10 @@ def pair_agreement(
     floor = bias_fraction * 1.4826 * float(np.median(np.abs(r - np.median(r))))
     refine_mm, refine_deg = max(min_mm, k_sigma * floor * 1000), max(min_deg, math.degrees(k_sigma * floor / radius))
 
+    cov0, _ = sandwich_covariance(q, n, r, fr, noise_weights(r, sg), keep, centre, radius, block_size)
+    gate = first_step_gate(cov0, keep, centre, radius, refine_mm, refine_deg, k_sigma)
     icp = observable_icp(source, target, (q, n, r, fr, sg), keep, centre, radius, max_distance, iterations,
-                         min_overlap, refine_mm, refine_deg)
+                         min_overlap, gate)
     if icp is None:
         return PairAgreement(cam_a, cam_b, n_overlap, median_before, nan, nan, nan, 0.0)
     T, (q, n, r, fr, sg) = icp
@@ -533,7 +586,10 @@ def rig_pair_system(frames: list, T: np.ndarray, pair: tuple[int, int], max_dist
     """(a, b, H, g, weighted RMS residual) of the ordered view pair (a, b) under the poses' corrections
     T (C, 4, 4), in world coordinates; None when they overlap in fewer than min_overlap points."""
     a, b = pair
-    q, n, r, _, sg = _correspondences(frames[a], frames[b], np.linalg.inv(T[b]) @ T[a], max_distance)
+    # every match, coverage edges included: solved over all pairs at once under a prior, the refinement
+    # put cameras farther from the truth without them (tools/bench_calibration_refine)
+    q, n, r, _, sg = _correspondences(frames[a], frames[b], np.linalg.inv(T[b]) @ T[a], max_distance,
+                                      within_coverage=False)
     if len(r) < min_overlap:
         return None
     w = noise_weights(r, sg)
@@ -573,9 +629,9 @@ def refine_rig(
     """Correct all cameras' poses at once so their clouds agree (the check only measures pairs).
 
     points_per_view as in `check_calibration` (per view, one (N, 3) world array per frame). Each
-    ordered pair of views gives the check's point-to-plane correspondences, frame by frame; the
-    unknown is one scaled twist per camera about the clouds' centre, solved by Gauss-Newton over
-    all pairs together. A prior of `prior` x the largest curvature on each camera's total
+    ordered pair of views gives the check's point-to-plane correspondences (coverage edges kept),
+    frame by frame; the unknown is one scaled twist per camera about the clouds' centre, solved by
+    Gauss-Newton over all pairs together. A prior of `prior` x the largest curvature on each camera's total
     correction keeps the directions the scene hardly constrains where they were (they would walk on
     depth noise; tools/bench_calibration_refine); it grows with the square of a correction's length
     (scaled twist, metres) up to `linear_beyond_m` and linearly beyond, so one camera that needs a

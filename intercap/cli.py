@@ -31,6 +31,24 @@ def _stages_override(stages: str | None) -> list[str]:
     return [f"run.stages={','.join(names)}"]
 
 
+def parse_frames(text: str | None) -> tuple[int | None, int | None] | None:
+    """`--frames A:B` as (A, B), inclusive; an open end is None."""
+    from intercap.config import ConfigError
+
+    if text is None:
+        return None
+    first, sep, last = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        bounds = tuple(int(v) if v.strip() else None for v in (first, last))
+    except ValueError:
+        raise ConfigError(f"--frames {text!r}: give A:B (inclusive frame indices, e.g. 10:59, 10: or :59)") from None
+    if any(v is not None and v < 0 for v in bounds) or (None not in bounds and bounds[0] > bounds[1]):
+        raise ConfigError(f"--frames {text!r}: frame indices are >= 0 and A <= B")
+    return bounds
+
+
 def _cmd_run(args) -> int:
     from intercap.config import load_config
     from intercap.pipeline import run_pipeline
@@ -41,8 +59,8 @@ def _cmd_run(args) -> int:
     if args.device:
         overrides.append(f"run.device={args.device}")
     cfg = load_config(args.config, overrides)
-    metrics = run_pipeline(args.session, args.out, cfg, progress=not args.quiet)
-    for stage, figures in metrics.items():
+    metrics = run_pipeline(args.session, args.out, cfg, progress=show_progress(args), frames=parse_frames(args.frames))
+    for stage, figures in ({} if args.log_quiet else metrics).items():
         shown = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in figures.items()
                           if not (isinstance(v, list) and v and isinstance(v[0], dict)))  # tables: metrics.json
         print(f"{stage}: {shown}")
@@ -99,7 +117,7 @@ def _cmd_view(args) -> int:
     from intercap.evaluation.viewer import ViewerError, serve
 
     try:
-        serve(args.out, port=args.port, session=args.session, block=True)
+        serve(args.out, port=args.port, host=args.host, session=args.session, block=True)
     except ViewerError as exc:
         print(f"intercap view: error: {exc}", file=sys.stderr)
         return 2
@@ -110,7 +128,7 @@ def _cmd_report(args) -> int:
     from intercap.evaluation.report import write_report
 
     with holding(args.out):
-        path = write_report(args.out, session=args.session, gt=args.gt, progress=not args.quiet)
+        path = write_report(args.out, session=args.session, gt=args.gt, progress=show_progress(args))
     print(f"report written to {path.resolve()}")
     return 0
 
@@ -118,6 +136,8 @@ def _cmd_report(args) -> int:
 def _cmd_synth(args) -> int:
     from intercap.synth.generator import config_from_args, generate_session
 
+    if args.log_quiet or not sys.stderr.isatty():  # `intercap -q synth`, or a log file: no progress bars
+        args.quiet = True
     path = generate_session(config_from_args(args), args.out)
     print(f"synthetic session written to {path}")
     return 0
@@ -130,7 +150,10 @@ def _cmd_import_k4a(args) -> int:
         args.out_session, args.recordings, start=args.start, end=args.end, stride=args.stride,
         color_resolution=args.color_resolution, calibration=args.calibration,
         uncalibrated=args.uncalibrated, workers=args.workers, overwrite=args.overwrite,
+        object_mesh=args.object, mass_kg=args.mass_kg,
     )
+    for line in r["pose_sources"]:
+        print(line)
     for cam in r["cameras"]:
         print(f"{cam}: {len(r['dropped'][cam])} dropped frames, {len(r['frames_without_depth'][cam])} without depth")
     if r["placeholder_poses"]:
@@ -166,25 +189,30 @@ def _cmd_import_intercap(args) -> int:
 def add_import_parsers(sub) -> argparse._SubParsersAction:
     """`intercap import <importer> ...`: the group of importers; returns its subparsers
     so each importer adds itself with `isub.add_parser(name)` + `set_defaults(func=...)`."""
-    imp = sub.add_parser("import", help="import recordings or datasets into a session folder")
+    common = [logging_options()]
+    imp = sub.add_parser("import", parents=common, help="import recordings or datasets into a session folder")
     isub = imp.add_subparsers(dest="importer", required=True)
 
-    p = isub.add_parser("k4a", help="Azure Kinect recordings (.mkv), no SDK needed")
+    p = isub.add_parser("k4a", parents=common, help="Azure Kinect recordings (.mkv), no SDK needed")
     p.add_argument("out_session", help="session folder to write (must not exist)")
     p.add_argument("recordings", nargs="+", help="one .mkv per device of a synchronised rig")
     p.add_argument("--start", help="first frame (index, or seconds as 2.5s) of the aligned frames")
     p.add_argument("--end", help="last frame, inclusive (index, or seconds as 10s)")
     p.add_argument("--stride", type=int, default=1, help="keep every n-th frame")
     p.add_argument("--color-resolution", help="downscale colour (and registered depth): WxH or a height, e.g. 360")
-    p.add_argument("--calibration", help="calibration.json of ours giving the rig's poses (from `intercap calibrate`)")
+    p.add_argument("--calibration", help="calibration.json of ours giving the rig's poses (from `intercap calibrate`); "
+                   "devices are matched by serial number where it has them, else by order")
     p.add_argument("--uncalibrated", action="store_true",
                    help="several devices without --calibration: write identity placeholder poses")
+    p.add_argument("--object", metavar="MESH", help="the handled object's mesh (.ply or .obj, metres), copied into "
+                   "the session; without it the session is body-only")
+    p.add_argument("--mass-kg", type=float, help="the object's mass (physics), with --object")
     p.add_argument("--workers", type=int, help="rig: processes, one per device at a time (default: one per device, "
                    "at most the CPU count); one recording: threads (default 2)")
     p.add_argument("--overwrite", action="store_true", help="replace OUT_SESSION if it exists")
     p.set_defaults(func=_cmd_import_k4a)
 
-    p = isub.add_parser("behave", help="a BEHAVE sequence (t0000.000/k0.color.jpg ...)")
+    p = isub.add_parser("behave", parents=common, help="a BEHAVE sequence (t0000.000/k0.color.jpg ...)")
     p.add_argument("seq_dir", help="BEHAVE sequence folder (sequences/<Date>_<Sub>_<object>...)")
     p.add_argument("out_session", help="session folder to write (must not exist)")
     p.add_argument("--calib", help="BEHAVE's calibs/ folder (<Date>/config/<k>/config.json, intrinsics/<k>/calibration.json)")
@@ -194,7 +222,7 @@ def add_import_parsers(sub) -> argparse._SubParsersAction:
     p.add_argument("--overwrite", action="store_true", help="replace OUT_SESSION if it exists")
     p.set_defaults(func=_cmd_import_behave)
 
-    p = isub.add_parser("intercap", help="an InterCap segment (Frames_Cam<k>/color ...)")
+    p = isub.add_parser("intercap", parents=common, help="an InterCap segment (Frames_Cam<k>/color ...)")
     p.add_argument("seq_dir", help="InterCap segment folder (RGBD_Images/<subject>/<motion>/Seg_<n>)")
     p.add_argument("out_session", help="session folder to write (must not exist)")
     p.add_argument("--calib", required=True, help="InterCap's Data/ folder (calibration_first|second|third/Color*.json)")
@@ -218,18 +246,37 @@ def _cmd_calibrate(args) -> int:
     return calibrate_command(args)
 
 
+def logging_options(quiet: bool = True) -> argparse.ArgumentParser:
+    """-v / -q as a parent of every subcommand, so they are taken after it too (`run S --out O -v`).
+    Their defaults are left unset here: a subcommand's default would overwrite the flag given before it."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("-v", "--verbose", dest="log_verbose", action="store_true", default=argparse.SUPPRESS,
+                   help="debug logging")
+    if quiet:
+        p.add_argument("-q", "--quiet", dest="log_quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="warnings and errors only, no progress bars")
+    return p
+
+
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The command line; given the `command` about to run, the other commands' options that need
-    heavy imports (the generator's torch and trimesh, calibration's open3d) are left out."""
+    """The command line; the options of `synth` and `calibrate` need heavy imports (the generator's
+    torch and trimesh, calibration's open3d), so they are added only when that command is about to
+    run (`intercap --help` lists the commands without them)."""
+    from intercap import __version__
+
     parser = argparse.ArgumentParser(prog="intercap", description="Multi-view RGB-D human-object capture.")
-    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version", version=f"intercap {__version__}")
+    parser.add_argument("-v", "--verbose", dest="log_verbose", action="store_true", help="debug logging")
+    parser.add_argument("-q", "--quiet", dest="log_quiet", action="store_true",
+                        help="warnings and errors only, no progress bars")
+    common = [logging_options()]
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("validate", help="check a session folder and summarise it")
+    p = sub.add_parser("validate", parents=common, help="check a session folder and summarise it")
     p.add_argument("session")
     p.set_defaults(func=_cmd_validate)
 
-    p = sub.add_parser("run", help="run the pipeline stages on a session (resumable)")
+    p = sub.add_parser("run", parents=common, help="run the pipeline stages on a session (resumable)")
     p.add_argument("session")
     p.add_argument("--out", required=True, help="results folder")
     p.add_argument("--config", help="YAML file overriding the defaults")
@@ -237,16 +284,17 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     p.add_argument("--stages", help="comma-separated stages to run (default: all built stages)")
     p.add_argument("--force", action="store_true", help="redo stages whose output is already saved")
     p.add_argument("--device", help="cpu or cuda")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--frames", metavar="A:B", help="run on frames A..B only (inclusive, session frame indices; "
+                   "A: or :B leave that end open); eval cuts the ground truth to them")
     p.set_defaults(func=_cmd_run)
 
-    p = sub.add_parser("eval", help="compare a results folder with a session's ground truth")
+    p = sub.add_parser("eval", parents=common, help="compare a results folder with a session's ground truth")
     p.add_argument("out", help="results folder written by `intercap run`")
     p.add_argument("--gt", help="session folder with ground_truth/ (without: physics plausibility figures only)")
     p.add_argument("--json", help="where to write the figures (default OUT/eval.json)")
     p.set_defaults(func=_cmd_eval)
 
-    p = sub.add_parser("run-many", help="run the pipeline on many sessions as Ray tasks (resumable per session)")
+    p = sub.add_parser("run-many", parents=common, help="run the pipeline on many sessions as Ray tasks (resumable per session)")
     p.add_argument("sessions", nargs="+", metavar="SESSION_GLOB", help="session folders or glob patterns")
     p.add_argument("--out", required=True, help="ROOT: results go to ROOT/<session name>/, the table to ROOT/summary.csv")
     p.add_argument("--address", help="existing Ray cluster: ray://HEAD:10001, or auto on a cluster node (default: local Ray)")
@@ -261,28 +309,29 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
     add_import_parsers(sub)
 
-    p = sub.add_parser("view", help="interactive 3D viewer of a results folder in the browser (viser)")
+    p = sub.add_parser("view", parents=common, help="interactive 3D viewer of a results folder in the browser (viser)")
     p.add_argument("out", help="results folder written by `intercap run`")
-    p.add_argument("--port", type=int, default=0, help="port on localhost (default: a free one)")
+    p.add_argument("--port", type=int, default=0, help="port (default: a free one)")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="address to listen on (default 127.0.0.1, this machine only; 0.0.0.0: every interface)")
     p.add_argument("--session", help="the session folder (default: the one recorded in OUT/run.json)")
     p.set_defaults(func=_cmd_view)
 
-    p = sub.add_parser("report", help="write OUT/report/index.html: overlays, curves, contact, evaluation")
+    p = sub.add_parser("report", parents=common, help="write OUT/report/index.html: overlays, curves, contact, evaluation")
     p.add_argument("out", help="results folder written by `intercap run`")
     p.add_argument("--gt", help="session folder with ground_truth/: adds the evaluation table and error curves")
     p.add_argument("--session", help="the session folder (default: the one recorded in OUT/run.json)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=_cmd_report)
 
-    p = sub.add_parser("synth", help="write a synthetic session with ground truth")
-    if command in (None, "synth"):
+    p = sub.add_parser("synth", parents=[logging_options(quiet=False)], help="write a synthetic session with ground truth")
+    if command == "synth":
         from intercap.synth.generator import build_arg_parser
 
         build_arg_parser(p)  # adds OUT and the generator's options
     p.set_defaults(func=_cmd_synth)
 
-    p = sub.add_parser("calibrate", help="rig extrinsics from a recording of a ChArUco or checkerboard board")
-    if command in (None, "calibrate"):
+    p = sub.add_parser("calibrate", parents=common, help="rig extrinsics from a recording of a ChArUco or checkerboard board")
+    if command == "calibrate":
         from intercap.calib.board import add_calibrate_arguments
 
         add_calibrate_arguments(p)
@@ -290,10 +339,37 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def setup_logging(verbose: bool, quiet: bool) -> None:
+    """Console logging: DEBUG with -v, WARNING and up with -q, else INFO. The root logger lets INFO
+    through even with -q, so OUT/run.log (`pipeline.run_log`) still gets it."""
+    level = logging.DEBUG if verbose else logging.WARNING if quiet else logging.INFO
+    root = logging.getLogger()
+    ours = [h for h in root.handlers if getattr(h, "intercap_console", False)]
+    if not root.handlers or ours:  # as basicConfig: handlers someone else set up are theirs
+        handler = ours[0] if ours else logging.StreamHandler()
+        handler.setStream(sys.stderr)  # the stream of now (a test, a redirected run)
+        handler.intercap_console = True
+        handler.setFormatter(logging.Formatter("%(levelname)s %(name)s: %(message)s"))
+        handler.setLevel(level)
+        if not ours:
+            root.addHandler(handler)
+    root.setLevel(min(level, logging.INFO))
+
+
+def show_progress(args) -> bool:
+    """Progress bars only on a terminal (tqdm's carriage returns spoil logs and pipes) and not with -q."""
+    return not args.log_quiet and sys.stderr.isatty()
+
+
 def main(argv: list[str] | None = None) -> int:
     given = sys.argv[1:] if argv is None else argv
     args = build_parser(next((a for a in given if not a.startswith("-")), None)).parse_args(argv)
-    logging.basicConfig(level=logging.DEBUG if args.verbose else logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    args.log_verbose = getattr(args, "log_verbose", False)
+    args.log_quiet = getattr(args, "log_quiet", False)
+    if args.log_verbose and args.log_quiet:
+        print(f"intercap {args.command}: error: -v and -q together; choose one", file=sys.stderr)
+        return 2
+    setup_logging(args.log_verbose, args.log_quiet)
     from intercap.config import ConfigError
     from intercap.pipeline import StageError
     from intercap.session import SessionError
@@ -313,7 +389,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"intercap {args.command}: error: {os_error_line(exc)}", file=sys.stderr)
         return 1
     except Exception as exc:  # noqa: BLE001 - a bug: one line and where its traceback is, not the traceback
-        if args.verbose:
+        if args.log_verbose:
             raise
         from intercap.batch import one_line
 

@@ -100,14 +100,18 @@ def available_stages() -> list[str]:
     return [name for name in ORDER if name in STAGES]
 
 
-def stage_fingerprint(stage: Stage, cfg: Config, session_root: Path, upstream: list[str]) -> str:
-    """Hash of what a stage's output depends on."""
+def stage_fingerprint(stage: Stage, cfg: Config, session_root: Path, upstream: list[str],
+                      frames: tuple[int, int] | None = None) -> str:
+    """Hash of what a stage's output depends on; `frames`: the part of the session a run took
+    (`run --frames`; None, the whole range, keeps the hash of a whole-session run)."""
     payload = {
         "session": str(Path(session_root).resolve()),
         "config": {s: asdict(getattr(cfg, s)) for s in stage.config_sections},
         "upstream": upstream,
         "body_model": asdict(cfg.body_model),
     }
+    if frames is not None:
+        payload["frames"] = [int(f) for f in frames]
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -130,7 +134,7 @@ def _run_stages(session, cfg: Config, out_dir: Path, names: list[str], metrics: 
     order = available_stages()
     for name in order[:order.index(names[-1]) + 1]:
         stage = STAGES[name]
-        fingerprint = stage_fingerprint(stage, cfg, session.root, upstream)
+        fingerprint = stage_fingerprint(stage, cfg, session.root, upstream, getattr(session, "run_frames", None))
         upstream.append(fingerprint)  # also of stages not run now: `--stages global` finds the full run's work
         if name != "prepare":  # the later stages see the cameras `prepare` refined, in this run or a saved one
             session.use_refined_calibration(out_dir)
@@ -263,9 +267,12 @@ def claim_results_folder(session_root: Path, out_dir: Path, force: bool) -> None
 
 
 def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[str] | None = None,
-                 progress: bool = True) -> dict:
+                 progress: bool = True, frames: tuple[int | None, int | None] | None = None) -> dict:
     """Run the requested stages (default: every built stage) on a session.
 
+    frames: (first, last) session frame indices, inclusive (None: that end of the session's range),
+    to run on part of a take; recorded in OUT/run.json, where stage workers, `report` and `eval`
+    (which cuts the ground truth to them) read it.
     Returns the metrics dictionary that is also written to OUT/metrics.json."""
     from intercap.session import Session
 
@@ -273,6 +280,8 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
     names = resolve_stages(stages or cfg.run.stages)
     check_device(cfg.run.device)
     session = Session.load(session_path)
+    if frames is not None:
+        session.restrict_frames(*frames)
     out_dir = Path(out_dir)
     check_results_folder(session.root, out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -284,7 +293,43 @@ def run_pipeline(session_path, out_dir, cfg: Config | None = None, stages: list[
 def _run_in(session, out_dir: Path, cfg: Config, names: list[str], progress: bool) -> dict:
     """`run_pipeline` once the results folder is checked and locked."""
     save_config(cfg, out_dir / "config.yaml")
-    write_json(out_dir / "run.json", {"session": str(Path(session.root).resolve()), "stages": names})  # for `view`, `report`
+    write_json(out_dir / "run.json", {"session": str(Path(session.root).resolve()), "stages": names,  # for `view`, `report`
+                                      "frames": [int(session.frame_ids[0]), int(session.frame_ids[-1])]})
+    with run_log(out_dir / RUN_LOG):
+        return _run_logged(session, out_dir, cfg, names, progress)
+
+
+RUN_LOG = "run.log"  # OUT/run.log: INFO and above of every run into the folder, appended
+
+
+@contextmanager
+def run_log(path: Path):
+    """Copy this process's log records (INFO and above, timestamped) into `path` while the block runs."""
+    handler = logging.FileHandler(path, mode="a", encoding="utf-8")
+    handler.setLevel(logging.INFO)
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    level, shown = root.level, root.getEffectiveLevel()
+    held = [(h, h.level) for h in root.handlers if h.level < shown]  # the console keeps what it showed
+    if shown > logging.INFO:
+        for h, _ in held:
+            h.setLevel(shown)
+        root.setLevel(logging.INFO)
+    root.addHandler(handler)
+    try:
+        yield
+    finally:
+        root.removeHandler(handler)
+        root.setLevel(level)
+        for h, was in held:
+            h.setLevel(was)
+        handler.close()
+
+
+def _run_logged(session, out_dir: Path, cfg: Config, names: list[str], progress: bool) -> dict:
+    """`_run_in` with OUT/run.log open."""
+    log.info("run of %s, frames %d..%d, stages %s", session.root, session.frame_ids[0], session.frame_ids[-1],
+             ",".join(names))
     metrics_path = out_dir / "metrics.json"
     metrics = saved_record(metrics_path) if metrics_path.exists() else {}
 

@@ -79,7 +79,8 @@ def test_another_sessions_results_are_refused_unless_forced(tiny_session, tmp_pa
 
     run_pipeline(tiny_session, out, load_config(overrides=QUICK + ["run.force=true"]), progress=False)
     assert stand_in_prepare == [tiny_session.resolve()]
-    assert sorted(p.name for p in out.iterdir()) == [".lock", "config.yaml", "metrics.json", "prepare", "run.json"]
+    assert sorted(p.name for p in out.iterdir()) == [".lock", "config.yaml", "metrics.json", "prepare", "run.json",
+                                                     "run.log"]
     assert json.loads((out / "run.json").read_text())["session"] == str(tiny_session.resolve())
     run_pipeline(tiny_session, out, load_config(overrides=QUICK), progress=False)  # its own results: no refusal
 

@@ -1,6 +1,6 @@
 """Evaluation of a results folder against a session's ground truth (`intercap eval OUT --gt SESSION`).
 
-Reads only the results files named in SESSION_FORMAT.md (``object_poses.npz``,
+Reads only the results files named in docs/outputs.md (``object_poses.npz``,
 ``body_vertices.npy``, ``body_faces.npy``, ``contact.npy``, ``keypoints3d.npy``);
 any subset may exist. Every metric is computed from what both sides have; what
 had to be skipped, and why, is listed in ``EvalResult.notes``.
@@ -33,6 +33,7 @@ Definitions:
 """
 from __future__ import annotations
 
+import json
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -118,7 +119,7 @@ def _load_folder(folder: Path) -> tuple[dict[str, np.ndarray], dict[str, Path]]:
             continue
         arr = _load_npy(p)
         if arr.ndim != ndim or (ndim >= 2 and arr.shape[-1] != 3):
-            raise ValueError(f"{p}: unexpected shape {arr.shape} for {name} (see SESSION_FORMAT.md)")
+            raise ValueError(f"{p}: unexpected shape {arr.shape} for {name} (see docs/outputs.md)")
         data[name] = arr
         files[name] = p
     return data, files
@@ -158,6 +159,32 @@ def check_frame_counts(res_data, res_files, gt_data, gt_files) -> int:
                 f"frames.start in session.yaml"
             )
     return T
+
+
+def run_frames(out_dir: Path) -> tuple[int, int] | None:
+    """(first, last) session frames the run took, as OUT/run.json records them (`run --frames`)."""
+    try:
+        first, last = json.loads((Path(out_dir) / "run.json").read_text())["frames"]
+        return int(first), int(last)
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def cut_to_run_frames(gt: dict[str, np.ndarray], out_dir: Path, start: int) -> int:
+    """Cut the ground-truth arrays (rows from frames.start = `start`) to the frames the run took;
+    returns the run's first frame. A run of the whole session leaves them as they are."""
+    frames = run_frames(out_dir)
+    if frames is None:
+        return start
+    first, last = frames
+    lo = first - start
+    for key in ("object_R", "object_t", "body_vertices", "contact", "keypoints3d"):
+        if key in gt:
+            if lo < 0 or last - start >= len(gt[key]):
+                raise ValueError(f"the run took frames {first}..{last} but the ground truth covers "
+                                 f"{start}..{start + len(gt[key]) - 1}")
+            gt[key] = gt[key][lo:last - start + 1]
+    return first
 
 
 def _session_info(session_dir: Path) -> dict:
@@ -371,11 +398,12 @@ def evaluate(out_dir, session_dir=None, *, symmetric_object: bool | None = None,
     gt, gt_files = _load_folder(gt_dir)
     if not res_files:
         raise FileNotFoundError(f"{out_dir} holds none of the results files {', '.join(RESULT_FILES)}")
+    first = cut_to_run_frames(gt, out_dir, info["start"])
     T = check_frame_counts(res, res_files, gt, gt_files)
 
     result = EvalResult()
     result.metrics["frames"] = T
-    result.per_frame["frame"] = list(range(info["start"], info["start"] + T))
+    result.per_frame["frame"] = list(range(first, first + T))
     mesh = surface = None
     if info["mesh_path"] is not None and info["mesh_path"].is_file():
         mesh = load_object_mesh(info["mesh_path"])
@@ -397,7 +425,10 @@ def evaluate(out_dir, session_dir=None, *, symmetric_object: bool | None = None,
     if inp.has("penetration", ["body_vertices", "object_poses"], ["contact"]) and surface is not None:
         _penetration_metrics(inp)
     _jitter_metrics(inp)
-    metrics, notes = physics_metrics(out_dir, gt_dir)
+    metrics, notes = physics_metrics(out_dir, gt_dir if first == info["start"] else None)
+    if first != info["start"] and physics_file(out_dir).is_file():
+        notes.append(f"physics: the run took frames from {first} on (`run --frames`): not compared with "
+                     "ground_truth/physics.npz")
     result.metrics.update(metrics)
     result.notes += notes
     return result

@@ -51,7 +51,7 @@ def physics_metrics(out_dir, gt_dir=None) -> tuple[dict, list[str]]:
     for key in ("valid", "gravity", "body_mass_kg", "residual_force", "residual_torque", "object_residual_force",
                 "flight_episodes", "flight_acceleration", "flight_gravity_angle_deg"):
         if key not in z:
-            raise ValueError(f"{path}: key {key!r} missing (see SESSION_FORMAT.md)")
+            raise ValueError(f"{path}: key {key!r} missing (see docs/outputs.md)")
     metrics = {f"physics_{k}": v for k, v in summarise(z).items()}
     metrics["physics_body_mass_kg"] = float(z["body_mass_kg"])
     notes = []

@@ -4,9 +4,11 @@ OUT/report/index.html holds the session summary, per-stage timings, the calibrat
 per-frame curves (keypoint reprojection, cloud-to-fit, object confidence, trusted frames,
 contact per body region, penetration, body and object acceleration, physics forces), the
 InterCap-style figures (penetration CDF, contact heat map on the rest body), overlay
-thumbnails linking to the full images beside the page, and with ground truth the evaluation
-table and error-over-time curves. Figures are PNGs embedded as base64; the overlay images
-and the video sit in OUT/report/ (relative links), so the folder opens without a network.
+thumbnails linking to the full images beside the page, and with ground truth (--gt SESSION, else
+the session's own ground_truth/ folder) the evaluation table and error-over-time curves. Stage
+and evaluation figures are small tables of name, value and unit. Figures are PNGs embedded as
+base64; the overlay images and the video sit in OUT/report/ (relative links), so the folder opens
+without a network.
 
 Everything is computed from saved arrays; a stage that has not run shows "not run". The
 session path comes from the caller, else from OUT/run.json (written by `intercap run`) or
@@ -19,6 +21,7 @@ import html
 import io
 import json
 import logging
+import re
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,6 +36,9 @@ log = logging.getLogger(__name__)
 
 STAGE_ORDER = ["prepare", "detect", "object", "body", "contact", "global", "physics", "export"]
 STAGE_COLOURS = {"object": "tab:green", "body": "tab:blue", "global": "tab:red", "gt": "black"}
+PHYSICS_COLOURS = {"left hand |F|": "tab:blue", "right hand |F|": "tab:orange", "left foot |F|": "tab:green",
+                   "right foot |F|": "tab:red", "object-ground |F|": "tab:brown", "root residual |F|": "tab:purple",
+                   "object residual |F|": "tab:gray"}
 
 
 # -- page building ---------------------------------------------------------------------------
@@ -60,6 +66,11 @@ table{{border-collapse:collapse;margin:0.5em 0;font-size:0.9em}}
 td,th{{border:1px solid #ccc;padding:0.2em 0.6em;text-align:right}} th{{background:#f2f2f2}}
 td:first-child,th:first-child{{text-align:left}}
 .notrun{{color:#a33;font-style:italic}} .warn{{color:#a60}} .sub{{color:#666}}
+table{{max-width:100%}} th{{white-space:normal}} .unit{{text-align:left;color:#555}}
+.cards{{display:flex;flex-wrap:wrap;gap:0.4em 1.2em;align-items:flex-start}} .card{{flex:1 1 330px;max-width:560px}}
+table.calib td:last-child{{text-align:left}} .card h3{{margin:0.6em 0 0.1em;font-size:1em}}
+table.figures{{width:100%}} table.figures td{{padding:0.1em 0.4em;white-space:pre-line}}
+table.figures td:first-child{{white-space:nowrap}}
 img.fig{{max-width:100%}} .strip{{display:flex;flex-wrap:wrap;gap:4px}} .strip figure{{margin:0}}
 .strip figcaption{{font-size:0.75em;color:#555;text-align:center}} nav{{font-size:0.9em;margin:0.5em 0 1em}}
 </style></head><body>
@@ -70,8 +81,8 @@ img.fig{{max-width:100%}} .strip{{display:flex;flex-wrap:wrap;gap:4px}} .strip f
 """
 
 
-def table(rows: list[dict], columns: list[str] | None = None) -> str:
-    """An HTML table of dict rows (numbers shown with 4 significant digits)."""
+def table(rows: list[dict], columns: list[str] | None = None, cls: str = "") -> str:
+    """An HTML table of dict rows (numbers shown with 4 significant digits); cls: its CSS class."""
     if not rows:
         return "<p>(empty)</p>"
     columns = columns or list(dict.fromkeys(k for r in rows for k in r))
@@ -85,7 +96,8 @@ def table(rows: list[dict], columns: list[str] | None = None) -> str:
 
     head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
     body = "".join("<tr>" + "".join(f"<td>{cell(r.get(c))}</td>" for c in columns) + "</tr>" for r in rows)
-    return f"<table><tr>{head}</tr>{body}</table>"
+    attr = f' class="{cls}"' if cls else ""
+    return f"<table{attr}><tr>{head}</tr>{body}</table>"
 
 
 def png_data_uri(data: bytes) -> str:
@@ -97,7 +109,7 @@ def figure_html(fig, alt: str) -> str:
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=72)
+    fig.savefig(buf, format="png", dpi=72, bbox_inches="tight", pad_inches=0.05)
     plt.close(fig)
     return f'<img class="fig" alt="{html.escape(alt)}" src="{png_data_uri(buf.getvalue())}">'
 
@@ -111,15 +123,36 @@ def _plt():
     return plt
 
 
+def series_colours(names, given: dict[str, str] | None = None) -> dict[str, str]:
+    """A colour per series name, no two alike: `given`, else the stage's colour (a name starting with
+    "body", "object", "global" or "gt" and a space or colon), else the next tab10 / tab20 colour not
+    yet taken. Names of one stage share its colour (told apart by line style)."""
+    from matplotlib import colormaps
+    from matplotlib.colors import to_hex
+
+    given = dict(given or {})
+    out = {n: given.get(n) or STAGE_COLOURS.get(n.split(" ")[0].rstrip(":")) for n in names}
+    taken = {to_hex(c) for c in out.values() if c}
+    spare = [to_hex(c) for c in (*colormaps["tab10"].colors, *colormaps["tab20"].colors[1::2])]
+    spare = [c for c in dict.fromkeys(spare) if c not in taken]
+    for n in names:
+        if not out[n]:
+            out[n] = spare.pop(0) if spare else "#444444"
+    return out
+
+
 def curves(title: str, ylabel: str, series: dict[str, np.ndarray], frame_ids: np.ndarray, log_y: bool = False,
-           note: str = "") -> str:
-    """One line plot over frames of several named (T,) series (NaN gaps are gaps)."""
+           note: str = "", colours: dict[str, str] | None = None, styles: dict[str, str] | None = None) -> str:
+    """One line plot over frames of several named (T,) series (NaN gaps are gaps), each its own colour
+    (`series_colours`) or line style; `styles` overrides the style (default dashed for a stage's object series)."""
     plt = _plt()
     fig, ax = plt.subplots(figsize=(11, 2.8))
     fig.subplots_adjust(left=0.07, right=0.99, bottom=0.17, top=0.9)
+    colour = series_colours(list(series), colours)
+    styles = styles or {}
     for name, values in series.items():
-        ax.plot(frame_ids[:len(values)], values, label=name, color=STAGE_COLOURS.get(name.split(" ")[0].rstrip(":")),
-                ls="--" if "object" in name.split(" ")[1:] else "-",
+        ax.plot(frame_ids[:len(values)], values, label=name, color=colour[name],
+                ls=styles.get(name, "--" if "object" in name.split(" ")[1:] else "-"),
                 marker="." if len(values) < 80 else None, lw=1.2)
     ax.set_title(title, fontsize=10)
     ax.set_xlabel("frame")
@@ -127,7 +160,10 @@ def curves(title: str, ylabel: str, series: dict[str, np.ndarray], frame_ids: np
     if log_y:
         ax.set_yscale("symlog", linthresh=1.0)
     ax.grid(alpha=0.3)
-    if len(series) > 1:
+    if len(series) > 3:  # beside the plot, where it hides no line
+        fig.subplots_adjust(right=0.82)
+        ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0)
+    elif len(series) > 1:
         ax.legend(fontsize=8, loc="upper right")
     out = figure_html(fig, title)
     return out + (f'<p class="sub">{html.escape(note)}</p>' if note else "")
@@ -171,7 +207,8 @@ def find_session(out_dir: Path, session=None, gt=None):
 
 
 def _with_refined_calibration(session, out_dir: Path):
-    """The session with the cameras the run's `prepare` refined, as the fits saw them."""
+    """The session with the cameras the run's `prepare` refined and the frames it took, as the fits saw them."""
+    session.use_run_frames(out_dir)
     session.use_refined_calibration(out_dir)
     return session
 
@@ -509,21 +546,142 @@ def _summary_section(page: Page, session, report_dir: Path) -> None:
                  + '<p class="sub">per input kind: frames present / frames</p>')
 
 
-def _stages_section(page: Page, out_dir: Path, metrics: dict) -> None:
-    """Each stage's status, timings and scalar figures (metrics.json)."""
+# metrics.json keys: the last unit word(s) of a key name its unit; words after it are statistics
+_UNITS = {("pct", "bw"): "% body weight", ("mm", "s"): "mm/s", ("mps2",): "m/s²", ("mps",): "m/s",
+          ("mm",): "mm", ("px",): "px", ("deg",): "°", ("pct",): "%", ("kg",): "kg", ("n",): "N",
+          ("nm",): "N m", ("ms",): "ms", ("m",): "m", ("s",): "s"}
+_WORDS = {"gt": "ground truth", "add": "ADD", "adds": "ADD-S", "mpjpe": "MPJPE", "sym": "symmetric", "rmse": "RMSE",
+          "icp": "ICP", "2d": "2D", "3d": "3D"}
+_STATS = {"mean", "median", "max", "min", "p90", "p95", "p99", "sum", "std"}
+_FIGURE_NAMES = {  # keys whose words do not read well by themselves: (label, unit)
+    "seconds_per_frame_fit": ("fit time per frame", "s"), "physics_seconds_per_frame": ("solve time per frame", "s"),
+    "glb_bytes": ("glb file size", "MB"), "gravity_up": ("up (against gravity)", ""),
+    "keypoint_energy_ratio": ("keypoint energy after / before", "×"), "dataset_keys": ("dataset arrays", ""),
+    "gt_accuracy_2d_pct": ("2D baseline agrees with ground truth", "%"),
+    "gt_accuracy_3d_pct": ("3D baseline agrees with ground truth", "%"),
+}
+_FIGURES_SHOWN_ELSEWHERE = {"seconds", "seconds_per_frame", "orientation_hypotheses", "energy_before", "energy_after"}
+
+
+def figure_name(key: str) -> tuple[str, str]:
+    """(readable label, unit) of a metrics.json key: "penetration_mm_max" -> ("penetration (max)", "mm")."""
+    if key in _FIGURE_NAMES:
+        return _FIGURE_NAMES[key]
+    words = key.split("_")
+    stats = []
+    while len(words) > 1 and words[-1] in _STATS:
+        stats.insert(0, words.pop())
+    unit = ""
+    for n in (2, 1):
+        if len(words) > n and tuple(words[-n:]) in _UNITS:
+            unit, words = _UNITS[tuple(words[-n:])], words[:-n]
+            break
+    while len(words) > 1 and words[-1] in _STATS:  # "ground_reaction_mean_n"
+        stats.insert(0, words.pop())
+    label = " ".join(_WORDS.get(w, w) for w in words)
+    return label + (f" ({', '.join(stats)})" if stats else ""), unit
+
+
+def figure_value(key: str, value, unit: str) -> str | None:
+    """A metrics.json value as short text (None: nothing worth a row)."""
+    if value is None or (isinstance(value, (list, tuple, dict)) and not len(value)):
+        return None
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, (int, np.integer)):
+        return f"{value / 1e6:.1f}" if unit == "MB" else str(int(value))
+    if isinstance(value, (float, np.floating)):
+        return "–" if not np.isfinite(value) else f"{value:.3g}"
+    if isinstance(value, str):
+        p = Path(value)
+        if "/" in value and p.suffix:  # a file in the results: its folder and name
+            return f"{p.parent.name}/{p.name}"
+        return value.replace("_", " ") if re.fullmatch(r"[a-z0-9_]+", value) else value
+    if isinstance(value, dict):
+        items = [f"{str(k).replace('_', ' ')} {figure_value(k, v, '') or '–'}" for k, v in value.items()]
+        return "\n".join(items) if len(items) <= 8 else None  # one per line (white-space: pre-line)
+    if isinstance(value, (list, tuple)):
+        if all(isinstance(v, (int, float)) for v in value) and len(value) == 3 and unit == "":
+            return "(" + ", ".join(f"{v:.3g}" for v in value) + ")"
+        text = [("–".join(str(x) for x in v) if isinstance(v, (list, tuple)) else str(v)) for v in value]
+        return ", ".join(text[:12]) + (f" … ({len(text)} in all)" if len(text) > 12 else "")
+    return str(value)
+
+
+def stage_figures_table(figs: dict) -> str:
+    """A stage's figures (metrics.json) as a table of figure, value and unit."""
     rows = []
+    for key, value in figs.items():
+        if key in _FIGURES_SHOWN_ELSEWHERE:
+            continue
+        label, unit = figure_name(key)
+        text = figure_value(key, value, unit)
+        if text is not None:
+            rows.append(f"<tr><td>{html.escape(label)}</td><td>{html.escape(text)}</td>"
+                        f"<td class=\"unit\">{html.escape(unit)}</td></tr>")
+    return f'<table class="figures">{"".join(rows)}</table>' if rows else ""
+
+
+def energy_table(before: dict, after: dict) -> str:
+    """The joint fit's energy per term, before and after, with the change in per cent."""
+    rows = []
+    for term in dict.fromkeys([*before, *after]):
+        b, a = before.get(term), after.get(term)
+        change = 100 * (a - b) / b if isinstance(a, (int, float)) and isinstance(b, (int, float)) and b else None
+        rows.append({"term": term.replace("_", " "), "before": b, "after": a, "change (%)": change})
+    return table(rows, cls="figures")
+
+
+def _stages_section(page: Page, out_dir: Path, metrics: dict) -> None:
+    """Each stage's status and timings, then its figures (metrics.json) as a small table with units."""
+    rows, cards = [], []
     for name in STAGE_ORDER:
         figs = metrics.get(name, {})
         status = "done" if (out_dir / name / "DONE.json").is_file() else ("started, unfinished" if (out_dir / name / "STARTED.json").is_file()
                                       else ("present" if (out_dir / name).is_dir() else "not run"))
-        shown = {k: v for k, v in figs.items() if isinstance(v, (int, float, str)) and k not in ("seconds",
-                                                                                               "seconds_per_frame")}
-        rows.append({"stage": name, "status": status, "seconds": figs.get("seconds"),
-                     "s/frame": figs.get("seconds_per_frame"),
-                     "figures": "; ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
-                                          for k, v in shown.items())})
+        rows.append({"stage": name, "status": status, "time (s)": figs.get("seconds"),
+                     "per frame (s)": figs.get("seconds_per_frame")})
+        body = stage_figures_table(figs) if isinstance(figs, dict) else ""
+        if body:
+            cards.append(f'<div class="card"><h3>{html.escape(name)}</h3>{body}</div>')
+        before, after = (figs.get(k) if isinstance(figs, dict) else None for k in ("energy_before", "energy_after"))
+        if isinstance(before, dict) and isinstance(after, dict):
+            cards.append(f'<div class="card"><h3>{html.escape(name)}: energy per term, before and after the fit</h3>'
+                         + energy_table(before, after) + "</div>")
     total = sum(float(m.get("seconds", 0) or 0) for m in metrics.values() if isinstance(m, dict))
-    page.add("stages", "Stages and timings", table(rows) + f"<p>total {total:.1f} s</p>")
+    page.add("stages", "Stages and timings", table(rows) + f"<p>total {total:.1f} s</p>"
+             + (f'<div class="cards">{"".join(cards)}</div>' if cards else ""))
+
+
+def _plus_minus(value, sigma) -> str | None:
+    """"1.95 ± 1.23" (3 significant digits), the value alone without a finite sigma; None without a value."""
+    if not isinstance(value, (int, float)) or not np.isfinite(value):
+        return None
+    text = f"{value:.3g}"
+    return text + (f" ± {sigma:.2g}" if isinstance(sigma, (int, float)) and np.isfinite(sigma) else "")
+
+
+def calibration_pairs_table(pairs: list[dict]) -> str:
+    """The calibration check per camera pair: a few readable columns in mm and degrees, and a verdict."""
+    rows = []
+    for p in pairs:
+        if p.get("flagged"):
+            verdict = "disagrees: check the calibration"
+        elif p.get("judged") is False:
+            verdict = "too little overlap to judge"
+        else:
+            verdict = "agrees"
+        if p.get("unobservable"):
+            verdict += "; not constrained: " + "; ".join(str(u) for u in p["unobservable"])
+        row = {"cameras": f"{p.get('cam_a')} – {p.get('cam_b')}", "overlap (points)": p.get("overlap_points"),
+               "gap (mm)": p.get("median_distance_mm"), "residual (mm)": p.get("icp_rmse_mm"),
+               "correction (mm)": _plus_minus(p.get("correction_translation_mm"), p.get("translation_sigma_mm")),
+               "correction (°)": _plus_minus(p.get("correction_rotation_deg"), p.get("rotation_sigma_deg")),
+               "verdict": verdict}
+        rows.append({k: v for k, v in row.items() if v is not None})
+    columns = [c for c in ("cameras", "overlap (points)", "gap (mm)", "residual (mm)", "correction (mm)",
+                           "correction (°)", "verdict") if any(c in r for r in rows)]
+    return table(rows, columns, "calib")
 
 
 def _calibration_section(page: Page, out_dir: Path) -> None:
@@ -532,9 +690,6 @@ def _calibration_section(page: Page, out_dir: Path) -> None:
     if calib is None:
         page.not_run("calibration", "Calibration check", "no OUT/prepare/calibration_check.json (stage prepare)")
     else:
-        cols = ["cam_a", "cam_b", "overlap_points", "blocks", "judged", "median_distance_mm", "icp_rmse_mm",
-                "correction_translation_mm", "translation_sigma_mm", "correction_rotation_deg", "rotation_sigma_deg",
-                "flagged", "unobservable"]
         flagged = calib.get("flagged") or []
         msg = (f'<p class="warn">{len(flagged)} camera pair(s) disagree by more than {calib.get("warn_mm")} mm: '
                "check the calibration</p>") if flagged else "<p>no camera pair flagged</p>"
@@ -547,15 +702,18 @@ def _calibration_section(page: Page, out_dir: Path) -> None:
             still = after.get("flagged") or []
             msg += ("<p>The cameras' poses were refined so all views' depth agrees (prepare.calib_refine); "
                     "every later stage used them (OUT/prepare/calibration_refined.json, a calibration.json):</p>"
-                    + table(refined.get("corrections") or [], ["name", "moved_mm", "turned_deg"])
+                    + table([{"camera": c.get("name"), "moved (mm)": c.get("moved_mm"),
+                              "turned (°)": c.get("turned_deg")} for c in refined.get("corrections") or []])
                     + "<p>The check again with the refined poses:</p>"
-                    + table(after.get("pairs") or [], [c for c in cols if any(c in p for p in after.get("pairs") or [])])
+                    + calibration_pairs_table(after.get("pairs") or [])
                     + (f'<p class="warn">{len(still)} camera pair(s) still disagree: check the calibration</p>' if still
                        else "<p>no camera pair flagged after refining</p>"))
         page.add("calibration", "Calibration check",
                  f"<p>ICP between neighbouring cameras' clouds, frames {calib.get('frames')}</p>"
-                 + table(calib.get("pairs") or [], [c for c in cols if any(c in p for p in calib.get("pairs") or [])])
-                 + msg)
+                 + calibration_pairs_table(calib.get("pairs") or [])
+                 + '<p class="sub">gap: median distance between the two clouds where they overlap; residual: '
+                 "ICP's RMS point-to-plane residual (the sensors' noise floor); correction: the part of ICP's move "
+                 "the overlap constrains, ± one standard deviation</p>" + msg)
 
 
 def _orientation_section(page: Page, figures: dict) -> None:
@@ -594,6 +752,8 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     report_dir = out_dir / "report"
     report_dir.mkdir(parents=True, exist_ok=True)
     session = find_session(out_dir, session, gt)
+    if gt is None and session is not None and (Path(session.root) / "ground_truth").is_dir():
+        gt = session.root  # the session carries its own ground truth (synthetic or annotated)
     page = Page()
     metrics = _json(out_dir / "metrics.json") or {}
     steps = ["summary", "overlays", "curves", "contact", "penetration", "motion", "physics", "evaluation"]
@@ -644,7 +804,8 @@ def write_report(out_dir, session=None, gt=None, cfg=None, progress: bool = True
     if gt is not None:
         page.add("evaluation", "Evaluation against ground truth", _evaluation_section(out_dir, gt, fids))
     else:
-        page.not_run("evaluation", "Evaluation against ground truth", "no ground truth given (--gt SESSION)")
+        page.not_run("evaluation", "Evaluation against ground truth",
+                     "the session has no ground_truth/ folder and none was given (--gt SESSION)")
     _advance(bar, steps)
     bar.close()
 
@@ -884,7 +1045,7 @@ def _penetration_section(stages, frames, fids, surface, out_dir, gt) -> str:
     if g is not None and g.body_vertices is not None and g.object_R is not None:
         series["global"] = penetration_mm(g.body_vertices, g.object_R, g.object_t, surface, frames)
     gta = _gt_arrays(gt)
-    if "body_vertices" in gta and "R" in gta:
+    if series and "body_vertices" in gta and "R" in gta:  # beside a fit; alone it says nothing of the run
         series["gt"] = penetration_mm(gta["body_vertices"], gta["R"], gta["t"], surface, frames)
     if not series:
         return '<p class="notrun">not run: needs a body fit and object poses</p>'
@@ -894,15 +1055,16 @@ def _penetration_section(stages, frames, fids, surface, out_dir, gt) -> str:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5, 3.2))
     rows = []
+    colour = series_colours(list(series))
     for name, d in series.items():
         sel = d[on] if on is not None and on.any() else d
         sel = np.sort(sel[np.isfinite(sel)])
         if not len(sel):
             continue
-        ax.step(sel, np.arange(1, len(sel) + 1) / len(sel), where="post", label=name,
-                color=STAGE_COLOURS.get(name.split(" ")[0]))
-        rows.append({"result": name, "frames": len(sel), "mean mm": float(sel.mean()), "median mm": float(np.median(sel)),
-                     "max mm": float(sel.max()), "frames > 5 mm %": float(100 * (sel > 5).mean())})
+        ax.step(sel, np.arange(1, len(sel) + 1) / len(sel), where="post", label=name, color=colour[name])
+        rows.append({"result": name, "frames": len(sel), "mean (mm)": float(sel.mean()),
+                     "median (mm)": float(np.median(sel)), "max (mm)": float(sel.max()),
+                     "frames over 5 mm (%)": float(100 * (sel > 5).mean())})
     ax.set_xlabel("penetration depth (mm)")
     ax.set_ylabel("fraction of frames")
     ax.set_title("Penetration CDF" + (" (contact frames)" if on is not None and on.any() else ""), fontsize=10)
@@ -973,8 +1135,10 @@ def physics_section(physics: dict, fids: np.ndarray) -> str:
         return '<p class="notrun">physics.npz holds none of the force arrays</p>'
     T = len(next(iter(series.values())))
     pf = np.asarray(physics.get("frame_ids", fids[:T]))
-    parts = [curves("Forces (N)", "N", series, pf)]
-    facts = [f"{k}: {float(physics[k]):.3g} kg" for k in ("body_mass_kg", "object_mass_kg") if k in physics]
+    parts = [curves("Forces (N)", "N", series, pf, colours=PHYSICS_COLOURS,
+                    styles={n: "--" for n in series if "residual" in n})]
+    facts = [f"{k.split('_')[0]} mass: {float(physics[k]):.3g} kg" for k in ("body_mass_kg", "object_mass_kg")
+             if k in physics]
     if "valid" in physics:
         facts.append(f"valid frames: {int(np.asarray(physics['valid'], bool).sum())}/{len(physics['valid'])}")
     if "flight_episodes" in physics and len(physics["flight_episodes"]):
@@ -989,6 +1153,28 @@ def physics_section(physics: dict, fids: np.ndarray) -> str:
         facts.append("touching nothing by the contact labels, but not falling (a missed contact, not a flight): "
                      + ", ".join(f"frames {int(a)}-{int(b)}" for a, b in physics["flight_runs_held"]))
     return "".join(parts) + "<p>" + "<br>".join(facts) + "</p>"
+
+
+_METRIC_GROUPS = {"keypoint": "body", "hand": "body", "jitter": "motion", "penetration": "contact"}
+
+
+def metrics_table(metrics: dict) -> str:
+    """The evaluation's figures in small tables by subject (body, object, contact, ...): a readable
+    name (the key in its title), the value and its unit."""
+    groups: dict[str, list[str]] = {}
+    for key, value in metrics.items():
+        first = key.split("_")[0]
+        group = _METRIC_GROUPS.get(first, first)
+        label, unit = figure_name(key)
+        if group == first and group not in ("body", "contact", "frames") and label.startswith(first + " "):
+            label = label[len(first) + 1:]  # "physics foot skating" under "physics"
+        text = figure_value(key, value, unit)
+        groups.setdefault(group, []).append(
+            f'<tr><td title="{html.escape(key)}">{html.escape(label)}</td><td>{html.escape(text or "–")}</td>'
+            f'<td class="unit">{html.escape(unit)}</td></tr>')
+    cards = [f'<div class="card"><h3>{html.escape(g)}</h3><table class="figures">{"".join(rows)}</table></div>'
+             for g, rows in groups.items()]
+    return f'<div class="cards">{"".join(cards)}</div>'
 
 
 def _evaluation_section(out_dir: Path, gt, fids) -> str:
@@ -1006,21 +1192,25 @@ def _evaluation_section(out_dir: Path, gt, fids) -> str:
             result = evaluate(out_dir, gt)
         except (FileNotFoundError, ValueError) as exc:
             return f'<p class="notrun">not run: {html.escape(str(exc))}</p>'
+        except Exception as exc:  # noqa: BLE001 - an evaluation failure must not lose the rest of the report
+            log.warning("report: evaluation against %s failed (%s)", gt, exc)
+            return f'<p class="warn">evaluation failed: {html.escape(str(exc))}</p>'
         metrics, per_frame, notes = result.metrics, result.per_frame, result.notes
         write_json(result, cached)  # what `intercap eval` writes, so the next report reuses it
         data = json.loads(cached.read_text())
         cached.write_text(json.dumps({**data, "gt": str(Path(gt).resolve())}, indent=2) + "\n")
-    rows = [{"metric": k, "value": v} for k, v in metrics.items()]
-    parts = [table(rows)]
+    parts = [metrics_table(metrics)]
     pf = {k: np.asarray([np.nan if x is None else x for x in v], float) for k, v in per_frame.items() if k != "frame"}
     groups = (("Body error over time", "mm", ("body_surface_mm", "keypoint_mpjpe_mm", "hand_keypoint_mm")),
               ("Object error over time", "mm", ("object_add_mm", "object_adds_mm", "object_translation_mm")),
-              ("Object rotation error over time", "deg", ("object_rotation_deg", "object_rotation_sym_deg")),
+              ("Object rotation error over time", "degrees", ("object_rotation_deg", "object_rotation_sym_deg")),
               ("Penetration on ground-truth contact frames", "mm", ("penetration_mm",)))
+    palette = ("tab:blue", "tab:orange", "tab:green")
     for title, unit, keys in groups:
-        series = {k: pf[k] for k in keys if k in pf}
+        series = {figure_name(k)[0]: pf[k] for k in keys if k in pf}
         if series:
-            parts.append(curves(title, unit, series, fids))
+            parts.append(curves(title, unit, series, fids, colours=dict(zip(series, palette)),
+                                styles={n: "-" for n in series}))
     if notes:
         parts.append("<ul>" + "".join(f"<li>{html.escape(n)}</li>" for n in notes) + "</ul>")
     return "".join(parts)

@@ -223,6 +223,11 @@ def load_view_data(out_dir: str | Path, session: str | Path | None = None) -> Vi
         raise ViewerError(f"{out_dir}: nothing to show (no body_vertices.npy or object_poses.npz)")
     if any(n != T for n in lengths):
         raise ViewerError(f"{out_dir}: body_vertices.npy and object_poses.npz have different frame counts {lengths}")
+    try:  # `run --frames`: the part of the session the run took
+        first, last = json.loads((out_dir / "run.json").read_text())["frames"]
+        frame_ids = np.arange(int(first), int(last) + 1)
+    except (OSError, ValueError, KeyError, TypeError):
+        pass
     data.frame_ids = frame_ids if frame_ids is not None and len(frame_ids) == T else np.arange(T)
 
     _load_extras(data, out_dir, notes)
@@ -421,7 +426,9 @@ class Viewer:
         self.data = data
         self.source = FrameSource(data)
         self.server = viser.ViserServer(host=host, port=port or _free_port(host), verbose=verbose)
-        self.url = f"http://localhost:{self.server.get_port()}"
+        shown = ("localhost" if host in ("127.0.0.1", "localhost", "::1")
+                 else socket.gethostname() if host in ("0.0.0.0", "::", "") else host)  # every interface: this machine's name
+        self.url = f"http://{shown}:{self.server.get_port()}"
         self.index = -1
         self._stop = threading.Event()
         self._frame_lock = threading.RLock()
@@ -650,10 +657,11 @@ class Viewer:
 
 
 def serve(out_dir: str | Path, port: int = 0, session: str | Path | None = None, block: bool = True,
-          verbose: bool = False) -> Viewer:
-    """Start the viewer on localhost and print its URL; with block=True serve until Ctrl-C."""
+          verbose: bool = False, host: str = "127.0.0.1") -> Viewer:
+    """Start the viewer on `host` (default this machine only) and print its URL; with block=True
+    serve until Ctrl-C."""
     data = load_view_data(out_dir, session)
-    viewer = Viewer(data, port=port, verbose=verbose)
+    viewer = Viewer(data, port=port, host=host, verbose=verbose)
     print(f"intercap view: {viewer.url}  ({data.num_frames} frames, first frame ready in "
           f"{viewer.first_frame_s:.2f} s; Ctrl-C to stop)", flush=True)
     for note in data.notes:

@@ -16,7 +16,10 @@ frame without files, so frame k stays at time k / fps.
 
 Conventions of the written session: the camera of each device is its COLOUR camera
 (depth registered to it), OpenCV axes (x right, y down, z forward), metres. The world
-is the first recording's colour camera unless `--calibration` gives the rig's poses.
+is the first recording's colour camera unless `--calibration` gives the rig's poses, matched
+to the devices by serial number (each camera of the written calibration.json keeps its device's
+`serial`). session.yaml holds the fps and, with `--object MESH [--mass-kg M]`, the object block
+(the mesh copied into the session as object.ply / object.obj).
 """
 from __future__ import annotations
 
@@ -182,8 +185,41 @@ def _parse_size(text, native: tuple[int, int]) -> tuple[int, int]:
     return w, h
 
 
+def _match_calibration(recordings, names, cams: list[dict], path: Path) -> tuple[list[dict], list[str]]:
+    """The calibration entry of each recording's device, and how each was matched.
+
+    By serial number when the calibration's cameras carry one (`serial`, which this importer writes and
+    `intercap calibrate` keeps): recordings given in another order than the calibration recording's
+    still get their own device's pose. Without serials on both sides: by camera name, then by order,
+    with a warning that the order must be the calibration recording's."""
+    D = len(recordings)
+    serials = [str(r.serial or "") for r in recordings]
+    by_serial = {str(c["serial"]): c for c in cams if c.get("serial")}
+    if by_serial and all(serials):
+        missing = [f"{r.path.name} ({s})" for r, s in zip(recordings, serials) if s not in by_serial]
+        if missing:
+            raise K4AError(f"{path}: no camera with the serial number of {', '.join(missing)}; "
+                           f"it has {', '.join(sorted(by_serial))}")
+        return ([by_serial[s] for s in serials],
+                [f"serial {s}" for s in serials])
+    why = ("the calibration's cameras carry no serial number" if not by_serial else
+           f"{', '.join(r.path.name for r, s in zip(recordings, serials) if not s)} carry no serial number")
+    by_name = {str(c.get("name")): c for c in cams}
+    if all(n in by_name for n in names):
+        chosen, how = [by_name[n] for n in names], [f"name {n}" for n in names]
+    elif len(cams) == D:
+        chosen, how = list(cams), [f"position {d}" for d in range(D)]  # same order as the recordings
+    else:
+        raise K4AError(f"{path}: has cameras {sorted(by_name)}, need {names} or {D} cameras in recording order")
+    if D > 1:
+        log.warning("%s: %s, so poses go to the recordings by their order; give the recordings in the order "
+                    "of the calibration recording", path, why)
+    return chosen, how
+
+
 def _rig_poses(recordings, names, calibration_file, uncalibrated: bool):
-    """T_world_from_cam per camera, and the names whose pose is a placeholder."""
+    """T_world_from_cam per camera, the names whose pose is a placeholder, and per camera which
+    calibration entry gave its pose (empty without a calibration file)."""
     D = len(recordings)
     if calibration_file is not None:
         path = Path(calibration_file)
@@ -193,27 +229,27 @@ def _rig_poses(recordings, names, calibration_file, uncalibrated: bool):
             raise K4AMissingError(f"{path}: calibration file not found") from None
         except (ValueError, KeyError, TypeError) as exc:
             raise K4AError(f"{path}: not a calibration.json of ours ({exc})") from None
-        by_name = {str(c.get("name")): c for c in cams}
-        if all(n in by_name for n in names):
-            chosen = [by_name[n] for n in names]
-        elif len(cams) == D:
-            chosen = list(cams)  # same order as the recordings
-        else:
-            raise K4AError(f"{path}: has cameras {sorted(by_name)}, need {names} or {D} cameras in recording order")
+        if not isinstance(cams, list) or not all(isinstance(c, dict) for c in cams):
+            raise K4AError(f"{path}: not a calibration.json of ours (`cameras` is not a list of cameras)")
+        chosen, how = _match_calibration(recordings, names, cams, path)
+        sources = []
+        for n, r, c, h in zip(names, recordings, chosen, how):
+            sources.append(f"{n} ({r.path.name}): pose of calibration camera {c.get('name')!r}, matched by {h}")
+            log.info("%s", sources[-1])
         poses = []
         for c in chosen:
             T = np.asarray(c["T_world_from_cam"], dtype=np.float64)
             if T.shape != (4, 4):
                 raise K4AError(f"{path}: T_world_from_cam of {c.get('name')} is not 4x4")
             poses.append(T)
-        return poses, []
+        return poses, [], sources
     if D > 1 and not uncalibrated:
         raise K4AError(
             f"{recordings[1].path}: {D} recordings, but the poses between devices are unknown: run "
             "`intercap calibrate` and pass its calibration.json with --calibration (or --uncalibrated "
             "to write placeholder poses, e.g. to import a calibration recording)"
         )
-    return [np.eye(4) for _ in range(D)], names[1:]
+    return [np.eye(4) for _ in range(D)], names[1:], []
 
 
 def default_workers(devices: int) -> int:
@@ -285,10 +321,48 @@ def _import_devices(recs, al: Alignment, sel, sizes, lenses, tmp: Path, names, w
             _import_device(*t, max(1, workers))
 
 
+def _object_mesh(path, mass_kg):
+    """The object mesh `--object` names, checked (a triangle mesh, .ply or .obj), or None; `--mass-kg`
+    needs it and must be positive."""
+    if path is None:
+        if mass_kg is not None:
+            raise K4AError("--mass-kg is the object's mass: give the object's mesh with --object too")
+        return None
+    path = Path(path)
+    if not path.is_file():
+        raise K4AMissingError(f"{path}: object mesh not found")
+    if path.suffix.lower() not in (".ply", ".obj"):
+        raise K4AError(f"{path}: the object mesh must be a .ply or .obj file (metres)")
+    if mass_kg is not None and not (float(mass_kg) > 0):
+        raise K4AError(f"--mass-kg {mass_kg}: the object's mass must be positive")
+    import trimesh
+
+    try:
+        mesh = trimesh.load(str(path), force="mesh")
+    except Exception as exc:  # noqa: BLE001 - any reader failure is a bad file
+        raise K4AError(f"{path}: cannot read the object mesh ({exc})") from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise K4AError(f"{path}: not a triangle mesh")
+    extent = float(np.max(mesh.extents))
+    if extent > 5.0:
+        log.warning("%s: %.1f units across; session meshes are in metres (a mesh in millimetres?)", path, extent)
+    return path
+
+
+def _session_yaml(fps: float, mesh: Path | None, mass_kg) -> dict:
+    """session.yaml's content: fps, and the object block when a mesh was given (copied as object.<ext>)."""
+    doc: dict = {"fps": float(f"{fps:g}")}
+    if mesh is not None:
+        doc["object"] = {"mesh": f"object{mesh.suffix.lower()}", "name": mesh.stem}
+        if mass_kg is not None:
+            doc["object"]["mass_kg"] = float(mass_kg)
+    return doc
+
+
 def _write_session_files(tmp: Path, recs, al: Alignment, sel, names, lenses, poses, placeholders, calibration,
-                         stride: int) -> tuple[dict, dict, float]:
-    """calibration.json, session.yaml and k4a_import.json in tmp; returns (dropped frames, frames without
-    depth) per camera and the session's fps."""
+                         stride: int, mesh: Path | None = None, mass_kg=None) -> tuple[dict, dict, float]:
+    """calibration.json, session.yaml (with the object's mesh copied beside it) and k4a_import.json in
+    tmp; returns (dropped frames, frames without depth) per camera and the session's fps."""
     dropped = {n: [int(i) for i, g in enumerate(sel) if al.frames[g, d] < 0] for d, n in enumerate(names)}
     no_depth = {n: [int(i) for i, g in enumerate(sel) if al.frames[g, d] >= 0 and al.depth[g, d] < 0]
                 for d, n in enumerate(names)}
@@ -299,13 +373,20 @@ def _write_session_files(tmp: Path, recs, al: Alignment, sel, names, lenses, pos
         cams.append({"name": n, "width": lens.width, "height": lens.height, "K": lens.K.tolist(),
                      # OpenCV rational model; the Azure Kinect's codx, cody are zero (checked on parsing)
                      "dist": lens.dist.tolist(), "T_world_from_cam": poses[d].tolist()})
+        if recs[d].serial:  # kept by `intercap calibrate`, so a later import matches poses by device
+            cams[-1]["serial"] = str(recs[d].serial)
     world = ("metres; OpenCV camera axes; the world is the colour camera of the first recording "
              f"({recs[0].path.name})" if calibration is None else f"metres; rig poses from {calibration}")
     calib = {"world": world, "cameras": cams}
     if placeholders:
         calib["extrinsics_unknown"] = placeholders
     (tmp / "calibration.json").write_text(json.dumps(calib, indent=1) + "\n")
-    (tmp / "session.yaml").write_text(f"fps: {fps:g}\n")
+    import yaml
+
+    doc = _session_yaml(fps, mesh, mass_kg)
+    if mesh is not None:
+        shutil.copyfile(mesh, tmp / doc["object"]["mesh"])
+    (tmp / "session.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
     report = {
         "source": "Azure Kinect recordings",
         "cameras": [{"name": n, "file": str(r.path), "serial": r.serial, "sync_mode": r.sync_mode,
@@ -333,6 +414,8 @@ def import_k4a(
     uncalibrated: bool = False,
     workers: int | None = None,
     overwrite: bool = False,
+    object_mesh=None,
+    mass_kg: float | None = None,
 ) -> dict:
     """Import Azure Kinect recordings into a session folder; returns a summary dict
     (frames, per-camera drops, timings, workers used). Written to a hidden folder beside
@@ -341,7 +424,12 @@ def import_k4a(
     workers: a rig is imported by one process per device (at most `workers` at a time;
     default: one per device, at most the CPU count), each streaming its recording with a
     bounded queue, so memory does not grow with the recording's length; a single recording
-    uses `workers` threads (default: 2, at most the CPU count)."""
+    uses `workers` threads (default: 2, at most the CPU count).
+
+    object_mesh: the handled object's mesh (.ply / .obj, metres), copied into the session as object.<ext>
+    and named in session.yaml's object block, with `mass_kg` when given; without it the session is
+    body-only. calibration: with serial numbers in it, each device gets its own pose whatever the
+    order of `recordings`; the summary's `pose_sources` says which camera got which pose."""
     import time
 
     t0 = time.perf_counter()
@@ -356,7 +444,8 @@ def import_k4a(
     if workers < 1:
         raise K4AError(f"--workers must be >= 1, got {workers}")
     names = [f"cam{d}" for d in range(len(recs))]
-    poses, placeholders = _rig_poses(recs, names, calibration, uncalibrated)
+    poses, placeholders, pose_sources = _rig_poses(recs, names, calibration, uncalibrated)
+    mesh = _object_mesh(object_mesh, mass_kg)
     al = align(recs)
     sel = frame_selection(len(al.times_ns), al.fps, start, end, stride)
     sizes = [_parse_size(color_resolution, r.color_size) for r in recs]
@@ -369,7 +458,7 @@ def import_k4a(
     try:
         _import_devices(recs, al, sel, sizes, lenses, tmp, names, workers)
         dropped, no_depth, fps = _write_session_files(tmp, recs, al, sel, names, lenses, poses, placeholders,
-                                                      calibration, stride)
+                                                      calibration, stride, mesh, mass_kg)
         if out.exists():
             shutil.rmtree(out) if out.is_dir() else out.unlink()
         os.rename(tmp, out)
@@ -378,5 +467,5 @@ def import_k4a(
         raise
     return {"frames": int(sel.size), "cameras": names, "dropped": dropped, "frames_without_depth": no_depth,
             "fps": fps, "seconds": time.perf_counter() - t0, "setup_seconds": t_setup,
-            "placeholder_poses": placeholders, "workers": workers,
+            "placeholder_poses": placeholders, "pose_sources": pose_sources, "workers": workers,
             "parallel": "processes" if len(recs) > 1 and workers > 1 else ("threads" if workers > 1 else "none")}

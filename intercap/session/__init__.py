@@ -1,4 +1,4 @@
-"""The session contract (SESSION_FORMAT.md): reading a capture session folder, checking it,
+"""The session contract (docs/session_format.md): reading a capture session folder, checking it,
 and the OpenPose keypoint files it may carry. `Session.load` is the entry point."""
 from intercap.session.format import CameraInfo, GroundTruth, ObjectInfo, load_mesh_file
 from intercap.session.openpose import NUM_KEYPOINTS_2D, NUM_KEYPOINTS_3D, OPENPOSE_PARTS, openpose_to_array

@@ -1,4 +1,4 @@
-"""Reading the session format (SESSION_FORMAT.md): session.yaml, calibration.json, the
+"""Reading the session format (docs/session_format.md): session.yaml, calibration.json, the
 camera folders' frame files, the object block; each reader records what is wrong in a
 problem list instead of raising, so one pass reports everything."""
 from __future__ import annotations

@@ -188,6 +188,7 @@ def open_session(session, out_dir: Path | str):
 
     if not hasattr(session, "frame_ids"):
         session = Session.load(session)
+        session.use_run_frames(out_dir)  # `run --frames`
         session.use_refined_calibration(out_dir)
         attach(session, out_dir)
     return session

@@ -1,6 +1,6 @@
 """The session layer: read and check one capture session folder.
 
-The folder layout is the contract in SESSION_FORMAT.md. Two entry points:
+The folder layout is the contract in docs/session_format.md. Two entry points:
 
 * `Session.load(path)` checks structure and existence (YAML/JSON content,
   calibration matrices, camera folders, frame files, the object mesh, ground
@@ -119,6 +119,9 @@ class Session:
         self._reported: set[Problem] = set(problems)
         self._lock = threading.Lock()
         self.frame_cache = None  # decoded depth and masks of this run (`frame_cache.attach`)
+        self.run_frames: tuple[int, int] | None = None  # (first, last) when a run takes part of the range
+        self._gt_offset = 0  # ground-truth row of frame_ids[0]
+        self._last = int(frame_ids[-1]) if len(frame_ids) else -1  # the session's own last frame
 
     # -- loading ----------------------------------------------------------------
     @classmethod
@@ -130,6 +133,30 @@ class Session:
         if session is None:
             raise SessionError(path, problems)
         return session
+
+    def restrict_frames(self, first: int | None = None, last: int | None = None) -> None:
+        """Take frames first..last (inclusive; None keeps that end) of the session's range only, as
+        `run --frames` asks; ground_truth() is cut to them. ValueError outside the session's range."""
+        lo, hi = int(self.frame_ids[0]), int(self.frame_ids[-1])
+        first = lo if first is None else int(first)
+        last = hi if last is None else int(last)
+        if not lo <= first <= last <= hi:
+            raise ValueError(f"frames {first}..{last}: outside the session's frames {lo}..{hi}, or empty")
+        self._gt_offset += first - lo
+        self.frame_ids = np.arange(first, last + 1, dtype=np.int64)
+        start = first - self._gt_offset  # the session's own first frame
+        self.run_frames = None if (first, last) == (start, self._last) else (first, last)
+
+    def use_run_frames(self, out_dir: Path | str) -> bool:
+        """Take the frame range a run recorded in OUT/run.json (`run --frames`); True when it did."""
+        try:
+            frames = json.loads((Path(out_dir) / "run.json").read_text()).get("frames")
+        except (OSError, ValueError, AttributeError):
+            return False
+        if not frames or [int(self.frame_ids[0]), int(self.frame_ids[-1])] == list(frames):
+            return False
+        self.restrict_frames(*frames)
+        return True
 
     def use_refined_calibration(self, out_dir: Path | str) -> bool:
         """Take the camera poses a run's `prepare` stage refined (`refined_cameras`); True when it did."""
@@ -326,18 +353,19 @@ class Session:
             return None
         gt = self.root / "ground_truth"
         gt_data = GroundTruth()
+        rows = slice(self._gt_offset, self._gt_offset + self.num_frames)  # the frames of this run
         if (gt / "body_vertices.npy").is_file():
-            gt_data.body_vertices = np.load(gt / "body_vertices.npy").astype(np.float32, copy=False)
+            gt_data.body_vertices = np.load(gt / "body_vertices.npy", mmap_mode="r")[rows].astype(np.float32)
         if (gt / "body_faces.npy").is_file():
             gt_data.body_faces = np.load(gt / "body_faces.npy").astype(np.int64, copy=False)
         if (gt / "object_poses.npz").is_file():
             with np.load(gt / "object_poses.npz") as z:
-                gt_data.object_R = z["R"].astype(np.float64)
-                gt_data.object_t = z["t"].astype(np.float64)
+                gt_data.object_R = z["R"][rows].astype(np.float64)
+                gt_data.object_t = z["t"][rows].astype(np.float64)
         if (gt / "contact.npy").is_file():
-            gt_data.contact = np.load(gt / "contact.npy").astype(bool)
+            gt_data.contact = np.load(gt / "contact.npy")[rows].astype(bool)
         if (gt / "keypoints3d.npy").is_file():
-            gt_data.keypoints3d = np.load(gt / "keypoints3d.npy").astype(np.float32, copy=False)
+            gt_data.keypoints3d = np.load(gt / "keypoints3d.npy")[rows].astype(np.float32, copy=False)
         return gt_data
 
     # -- report -------------------------------------------------------------------

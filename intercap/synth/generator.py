@@ -5,11 +5,13 @@ An anny body performs a scripted interaction with a rigid object
 headless with pyrender (colour, depth, person and object masks), the renders
 get a real lens distortion (cv2.remap), Kinect-like depth noise and holes, and
 simulated OpenPose detections. Everything is written in the session format of
-SESSION_FORMAT.md, with ground_truth/.
+docs/session_format.md, with ground_truth/.
 
     python -m intercap.synth OUT --preset sample
     python -m intercap.synth OUT --script lift_drink --cameras 6 --width 640 --height 576
     python -m intercap.synth OUT --script table_lift --object flat_box --no-masks --no-keypoints --camera-world
+    python -m intercap.synth OUT --script sit_stand            # the person alone (also bend, walk_out)
+    python -m intercap.synth OUT --script turn --object none   # any script's body motion, no object
 
 The same seed gives byte-identical npy/json/png files.
 """
@@ -46,8 +48,9 @@ FLOOR_TILE = 0.5
 class SynthConfig:
     """Everything that defines a synthetic session (defaults: a full-size session)."""
 
-    script: str = "pick_place"  # pick_place lift_drink push_chair toss hold drop (physics) turn table_lift
-    object: str | None = None  # `objects.OBJECT_NAMES`; default: the script's own
+    # pick_place lift_drink push_chair toss hold drop (physics) turn table_lift; bend sit_stand walk_out (body only)
+    script: str = "pick_place"
+    object: str | None = None  # `objects.OBJECT_NAMES` or "none" (the person alone); default: the script's own
     frames: int | None = None  # None: the whole script at its natural speed; else resampled to this many
     fps: float = 30.0
     seed: int = 0
@@ -343,8 +346,9 @@ class SceneRenderer:
     SEG_PERSON = (255, 0, 0)
     SEG_OBJECT = (0, 255, 0)
 
-    def __init__(self, cams: list[Camera], body_faces: np.ndarray, body_colours: np.ndarray, obj_mesh: trimesh.Trimesh,
-                 obj_colour, statics: list[trimesh.Trimesh], light: float = 1.0):
+    def __init__(self, cams: list[Camera], body_faces: np.ndarray, body_colours: np.ndarray,
+                 obj_mesh: trimesh.Trimesh | None, obj_colour, statics: list[trimesh.Trimesh], light: float = 1.0):
+        """obj_mesh None: no object in the scene (its mask stays empty)."""
         import pyrender
 
         self.pyrender = pyrender
@@ -365,21 +369,24 @@ class SceneRenderer:
             # pyrender lights shine along their -z: turn the OpenCV look-at (+z forward) around
             self.scene.add(pyrender.DirectionalLight(intensity=intensity * light), pose=pose @ np.diag([1, -1, -1, 1.0]))
         self.static_nodes = [self.scene.add(pyrender.Mesh.from_trimesh(m, smooth=False)) for m in statics]
-        obj = obj_mesh.copy()
-        obj.visual.vertex_colors = np.array(tuple(obj_colour) + (255,), np.uint8)
-        self.obj_node = self.scene.add(pyrender.Mesh.from_trimesh(obj, smooth=False))
+        self.obj_node = None
+        if obj_mesh is not None:
+            obj = obj_mesh.copy()
+            obj.visual.vertex_colors = np.array(tuple(obj_colour) + (255,), np.uint8)
+            self.obj_node = self.scene.add(pyrender.Mesh.from_trimesh(obj, smooth=False))
         self.body_faces = body_faces
         self.body_colours = body_colours
         self.body_node = None
         self.cam_node = self.scene.add(pyrender.IntrinsicsCamera(1, 1, 0, 0), pose=np.eye(4))
         self.znear, self.zfar = 0.05, 30.0
 
-    def set_frame(self, body_vertices: np.ndarray, obj_pose: np.ndarray) -> None:
+    def set_frame(self, body_vertices: np.ndarray, obj_pose: np.ndarray | None) -> None:
         if self.body_node is not None:
             self.scene.remove_node(self.body_node)
         body = trimesh.Trimesh(body_vertices, self.body_faces, vertex_colors=self.body_colours, process=False)
         self.body_node = self.scene.add(self.pyrender.Mesh.from_trimesh(body, smooth=True))
-        self.scene.set_pose(self.obj_node, obj_pose)
+        if self.obj_node is not None:
+            self.scene.set_pose(self.obj_node, obj_pose)
 
     def render(self, view: int) -> dict:
         """Colour (H, W, 3) uint8, clean depth (H, W) float32 metres, person and object masks (H, W) bool."""
@@ -395,7 +402,8 @@ class SceneRenderer:
         colour, _ = self.renderer.render(self.scene)  # multisampled: antialiased colour
         seg_map = {n: (0, 0, 0) for n in self.static_nodes}
         seg_map[self.body_node] = self.SEG_PERSON
-        seg_map[self.obj_node] = self.SEG_OBJECT
+        if self.obj_node is not None:
+            seg_map[self.obj_node] = self.SEG_OBJECT
         # pyrender turns multisampling off for segmentation, so this depth is sampled exactly at
         # pixel centres (the multisampled pass's depth comes from one sub-sample, ~0.4 px off).
         seg, depth = self.renderer.render(self.scene, flags=pr.RenderFlags.SEG, seg_node_map=seg_map)
@@ -561,18 +569,17 @@ def write_colour(path: Path, rgb: np.ndarray, cfg: SynthConfig) -> None:
 
 
 def session_yaml(cfg: SynthConfig, spec, T: int, anim) -> dict:
-    doc = {
-        "fps": int(cfg.fps) if float(cfg.fps).is_integer() else float(cfg.fps),
-        "object": {
-            "mesh": "object.ply", "name": spec.name, "mass_kg": float(spec.mass_kg),
-            "contact_vertices": "object_contacts.json",
-        },
-        "frames": {"start": 0, "end": T - 1},
-        "body": {"model": "anny"},
-    }
-    if cfg.annotate:
+    """session.yaml's content; with `spec` None (the person alone) no `object` block."""
+    doc = {"fps": int(cfg.fps) if float(cfg.fps).is_integer() else float(cfg.fps)}
+    if spec is not None:
+        doc["object"] = {"mesh": "object.ply", "name": spec.name, "mass_kg": float(spec.mass_kg),
+                         "contact_vertices": "object_contacts.json"}
+    doc["frames"] = {"start": 0, "end": T - 1}
+    doc["body"] = {"model": "anny"}
+    if cfg.annotate and spec is not None:
         pose = anim.object_poses[0]
         doc["object"]["initial_pose"] = {"R": np.round(pose[:3, :3], 6).tolist(), "t": np.round(pose[:3, 3], 6).tolist()}
+    if cfg.annotate:
         frames = np.flatnonzero(anim.contact)
         ranges, start = [], None
         for f in range(T + 1):
@@ -672,17 +679,32 @@ def script_times(duration: float, cfg: SynthConfig) -> tuple[np.ndarray, float]:
 
 def centre_scene(anim) -> np.ndarray:
     """Shift (3,) that puts the middle of the action (root path and object track) over the origin."""
-    pts = np.concatenate([anim.params.transl.numpy()[:, :2], anim.object_poses[:, :2, 3]])
+    pts = anim.params.transl.numpy()[:, :2]
+    if anim.object_poses is not None:
+        pts = np.concatenate([pts, anim.object_poses[:, :2, 3]])
     mid = (pts.min(0) + pts.max(0)) / 2
     return np.array([-mid[0], -mid[1], 0.0])
+
+
+def exit_heading_deg(cfg: SynthConfig) -> float:
+    """Walking direction (degrees from +x) of a script that leaves the camera ring: midway between two
+    neighbouring cameras, or across the view of a single camera."""
+    return cfg.ring_offset_deg + (180.0 / cfg.cameras if cfg.cameras > 1 else 90.0)
+
+
+def start_at_centre(anim) -> np.ndarray:
+    """Shift (3,) that puts the root's start over the origin (a walk out of the ring begins in its middle)."""
+    start = anim.params.transl.numpy()[0, :2]
+    return np.array([-start[0], -start[1], 0.0])
 
 
 def shift_animation(anim, shift: np.ndarray):
     anim.vertices = anim.vertices + shift.astype(np.float32)
     anim.keypoints = anim.keypoints + shift.astype(np.float32)
     anim.params.transl = anim.params.transl + torch.as_tensor(shift, dtype=anim.params.transl.dtype)
-    anim.object_poses = anim.object_poses.copy()
-    anim.object_poses[:, :3, 3] += shift
+    if anim.object_poses is not None:
+        anim.object_poses = anim.object_poses.copy()
+        anim.object_poses[:, :3, 3] += shift
     props = []
     for name, mesh, pose in anim.props:
         pose = pose.copy()
@@ -732,14 +754,19 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     """Write a synthetic session to `out_dir` (created; existing frame files are overwritten)."""
     from tqdm import tqdm
 
-    from intercap.synth.motions import animate, get_script
-    from intercap.synth.objects import make_object
+    from intercap.synth.motions import animate, get_script, without_object
+    from intercap.synth.objects import NO_OBJECT, make_object
 
     torch.manual_seed(cfg.seed)
+    object_name = cfg.object or get_script(cfg.script).default_object
+    spec = None if object_name == NO_OBJECT else make_object(object_name)
+    script = get_script(cfg.script, spec)
+    if spec is None:  # the person alone: the script's body motion, the arms relaxed where they would hold it
+        script = without_object(script)
+    elif not script.holds_object:
+        raise ValueError(f"script {cfg.script!r} is of the person alone: it takes no object (--object {NO_OBJECT})")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    spec = make_object(cfg.object or get_script(cfg.script).default_object)
-    script = get_script(cfg.script, spec)
     if cfg.flight_turns:
         if script.flight is None or script.flight[0] != "catch":
             raise ValueError(f"--flight-turns needs a script with a caught flight (toss), not {cfg.script!r}")
@@ -751,7 +778,10 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
 
     t0 = time.perf_counter()
     model = cached_body_model()
-    heading = cfg.heading_deg + cfg.heading_jitter_deg * np.random.default_rng([cfg.seed, 404]).uniform(-1, 1)
+    jitter = np.random.default_rng([cfg.seed, 404]).uniform(-1, 1)
+    heading = cfg.heading_deg + cfg.heading_jitter_deg * jitter
+    if script.leaves_ring:
+        heading = exit_heading_deg(cfg) + 5.0 * jitter
     threads = torch.get_num_threads()
     torch.set_num_threads(max(1, int(cfg.threads)))
     try:
@@ -759,9 +789,10 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
                        ik_iters=cfg.ik_iters, polish_iters=max(5, cfg.ik_iters // 5))
     finally:
         torch.set_num_threads(threads)
-    anim = shift_animation(anim, centre_scene(anim))
+    anim = shift_animation(anim, start_at_centre(anim) if script.leaves_ring else centre_scene(anim))
     t_motion = time.perf_counter() - t0
-    log(cfg, f"[synth] motion: {t_motion:.1f} s; hand-object in contact frames: {json.dumps(anim.hand_gap)}")
+    log(cfg, f"[synth] motion: {t_motion:.1f} s" + (
+        f"; hand-object in contact frames: {json.dumps(anim.hand_gap)}" if spec is not None else "; no object"))
 
     cams = ring_cameras(cfg)
     faces = model.faces.cpu().numpy()
@@ -777,16 +808,18 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
 
     # static files
     write_json(out / "calibration.json", {"world": WORLD_NOTE, "cameras": [c.to_json() for c in cams]})
-    spec.mesh.export(out / "object.ply")
-    write_json(out / "object_contacts.json", {"vertices": [int(i) for i in spec.contact_vertices]})
+    if spec is not None:
+        spec.mesh.export(out / "object.ply")
+        write_json(out / "object_contacts.json", {"vertices": [int(i) for i in spec.contact_vertices]})
     (out / "session.yaml").write_text(yaml.safe_dump(session_yaml(cfg, spec, T, anim), sort_keys=False))
     gt = out / "ground_truth"
     gt.mkdir(exist_ok=True)
     np.save(gt / "body_vertices.npy", anim.vertices.astype(np.float32))
     np.save(gt / "body_faces.npy", faces.astype(np.int32))
-    save_npz_deterministic(gt / "object_poses.npz", R=anim.object_poses[:, :3, :3].astype(np.float64),
-                           t=anim.object_poses[:, :3, 3].astype(np.float64))
-    np.save(gt / "contact.npy", anim.contact.astype(bool))
+    if spec is not None:
+        save_npz_deterministic(gt / "object_poses.npz", R=anim.object_poses[:, :3, :3].astype(np.float64),
+                               t=anim.object_poses[:, :3, 3].astype(np.float64))
+    np.save(gt / "contact.npy", anim.contact.astype(bool))  # all False for the person alone
     np.save(gt / "keypoints3d.npy", anim.keypoints.astype(np.float32))
     params = {k: v.astype(np.float32) for k, v in anim.params.to_numpy_dict().items()}
     save_npz_deterministic(gt / "body_params.npz", model=np.array("anny"), **params)
@@ -795,25 +828,26 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
         "script": script.name, "speed": round(speed, 6), "phases": anim.phases,
         "script_times": np.round(times, 6).tolist(),
         "hand_object": {h: {k: round(v, 6) for k, v in d.items()} for h, d in anim.hand_gap.items()},
-        "hand_object_distance_m": np.round(anim.hand_distance, 5).tolist(),
+        "hand_object_distance_m": None if anim.hand_distance is None else np.round(anim.hand_distance, 5).tolist(),
         "ground": {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]},
         "props": [name for name, _, _ in anim.props],
     })
     write_json(gt / "ground.json", {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]})  # the floor, z up
     from intercap.synth.motions import PHYSICS_SCRIPTS
 
-    if script.name in PHYSICS_SCRIPTS:
+    if script.name in PHYSICS_SCRIPTS and spec is not None:
         save_npz_deterministic(gt / "physics.npz", **physics_ground_truth(anim, spec, faces, rest_v_for_mass(model, anim.params.shape[:1]),
                                                                           cfg.fps, speed))
 
     for c in cams:
         for sub in ["color", "depth"] + (["keypoints"] if cfg.keypoints else []) + (
-                ["masks/person", "masks/object"] if cfg.masks else []):
+                (["masks/person"] + (["masks/object"] if spec is not None else []) if cfg.masks else [])):
             (out / c.name / sub).mkdir(parents=True, exist_ok=True)
 
     dropped = dropped_frames(cfg, T)
     drop_view = cfg.drop_view % len(cams)
-    renderer = SceneRenderer(cams, faces, colours, spec.mesh, spec.color, statics, light=cfg.light)
+    renderer = SceneRenderer(cams, faces, colours, None if spec is None else spec.mesh,
+                             None if spec is None else spec.color, statics, light=cfg.light)
     t_render = time.perf_counter()
     views_done = 0
     ext = "jpg" if cfg.color_format == "jpg" else "png"
@@ -831,7 +865,8 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
         write_png(out / cam.name / "depth" / f"{name}.png", depth)
         if cfg.masks:
             write_png(out / cam.name / "masks" / "person" / f"{name}.png", r["person"].astype(np.uint8) * 255)
-            write_png(out / cam.name / "masks" / "object" / f"{name}.png", r["object"].astype(np.uint8) * 255)
+            if spec is not None:
+                write_png(out / cam.name / "masks" / "object" / f"{name}.png", r["object"].astype(np.uint8) * 255)
         if cfg.keypoints:
             people = simulate_openpose(anim.keypoints[f], cam, r["depth"], frame_rng(cfg.seed, 3, f, v), cfg)
             write_json(out / cam.name / "keypoints" / f"{name}.json", people)
@@ -841,7 +876,7 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
     try:
         with ThreadPoolExecutor(threads) as pool:
             for f in tqdm(range(T), desc="render", unit="frame", disable=cfg.quiet):
-                renderer.set_frame(anim.vertices[f], anim.object_poses[f])
+                renderer.set_frame(anim.vertices[f], None if anim.object_poses is None else anim.object_poses[f])
                 for v, cam in enumerate(cams):
                     if v == drop_view and f in dropped:
                         continue
@@ -874,15 +909,17 @@ def build_arg_parser(parser: argparse.ArgumentParser | None = None) -> argparse.
     if parser is None:
         parser = argparse.ArgumentParser(prog="python -m intercap.synth", description=__doc__.split("\n\n")[0])
     from intercap.synth.motions import SCRIPT_NAMES
-    from intercap.synth.objects import OBJECT_NAMES
+    from intercap.synth.objects import NO_OBJECT, OBJECT_NAMES
 
     d = SynthConfig()
     parser.add_argument("out", metavar="OUT", help="session folder to write")
     parser.add_argument("--preset", choices=sorted(PRESETS), help="a named set of defaults (sample: the committed sample session)")
     parser.add_argument("--script", choices=list(SCRIPT_NAMES),
-                        default=None, help="toss, hold, drop: known physics (ground_truth/physics.npz)")
-    parser.add_argument("--object", choices=list(OBJECT_NAMES), default=None,
-                        help="default: the script's object")
+                        default=None, help="toss, hold, drop: known physics (ground_truth/physics.npz); "
+                                           "bend, sit_stand, walk_out: the person alone")
+    parser.add_argument("--object", choices=list(OBJECT_NAMES) + [NO_OBJECT], default=None,
+                        help=f"default: the script's object; {NO_OBJECT}: the person alone "
+                             "(the default of bend, sit_stand, walk_out)")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (default: whole script at natural speed)")
     parser.add_argument("--fps", type=float, default=None)
     parser.add_argument("--seed", type=int, default=None)

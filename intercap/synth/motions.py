@@ -37,9 +37,10 @@ import torch
 import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
-from intercap.synth.objects import ObjectSpec, SdfGrid, SurfaceDistance, make_object
+from intercap.synth.objects import NO_OBJECT, ObjectSpec, SdfGrid, SurfaceDistance, make_object
 
-SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop", "turn", "table_lift")
+SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop", "turn", "table_lift", "bend",
+                "sit_stand", "walk_out")
 PHYSICS_SCRIPTS = ("toss", "hold", "drop")  # scripts with analytic physics (ground_truth/physics.npz)
 GRAVITY = 9.81  # m/s^2 along the generator's up (+z)
 TABLE_TOP = 0.74  # height of the "table" prop's top above the floor, metres
@@ -106,6 +107,17 @@ class Script:
     flight: tuple | None = None
     flight_turns: float = 0.0  # "catch": whole turns about the object's own x axis in flight (a spinning toss)
     hands_above: tuple = ()  # names of props (tables) whose top the hands and fingers stay above
+    # (prop kind, script time): furniture set under the seated body at that time, its top where the
+    # buttocks are (`seat_prop`), so it fits every phenotype
+    seat: tuple | None = None
+    # the person starts at the middle of the camera ring and walks out between two cameras, out of their
+    # views, and back (the generator sets the heading and centres the scene on the start)
+    leaves_ring: bool = False
+
+    @property
+    def holds_object(self) -> bool:
+        """Whether the script handles an object (False for the body-only scripts and `without_object`)."""
+        return bool(self.hands)
 
 
 def _rel(x, y, z, rotvec=(0.0, 0.0, 0.0)):
@@ -287,6 +299,88 @@ def turn() -> Script:
                   contact=("hold", "hold"))
 
 
+ARM_BONE_PREFIXES = ("clavicle", "shoulder", "upperarm", "lowerarm", "wrist")
+
+
+def _relax_arms(pose: dict) -> dict:
+    """The posture with the arms hanging relaxed (ARMS_RELAXED) instead of as scripted."""
+    kept = {bone: rv for bone, rv in pose.items() if not bone.startswith(ARM_BONE_PREFIXES)}
+    return dict(kept, **ARMS_RELAXED)
+
+
+def without_object(script: Script) -> Script:
+    """The script's body motion with no object: the same phases, heading, gait and posture, the arms
+    hanging relaxed where they would hold or reach for it, no contact, no flight; furniture stays."""
+    if not script.holds_object:
+        return script
+    return dataclasses.replace(
+        script, default_object=NO_OBJECT, hands=(), pose_keys=[(t, _relax_arms(p)) for t, p in script.pose_keys],
+        reach_keys=[(0.0, 0.0)], gap_keys=[(0.0, 0.0)], close_keys=[(0.0, 0.0)], object_keys=[], contact=(),
+        flight=None, flight_turns=0.0, hands_above=())
+
+
+def _body_only(name: str, duration: float, phases: dict, pose_keys: list, pitch_keys: list, **extra) -> Script:
+    """A script of the person alone: no object, standing on the spot (no walk, no turn) unless `extra` says."""
+    fields = dict(yaw_keys=[(0.0, 0.0)], walk_keys=[(0.0, 0.0)], reach_keys=[(0.0, 0.0)], gap_keys=[(0.0, 0.0)],
+                  close_keys=[(0.0, 0.0)], object_keys=[], contact=())
+    fields.update(extra)
+    return Script(name, duration, phases, NO_OBJECT, (), pose_keys, pitch_keys, **fields)
+
+
+def bend() -> Script:
+    """Stand, bend forward from the hips, the knees a little soft, until the hands hang at the knees
+    (the head comes down about 0.7 m), hold a moment, straighten up again (4 s)."""
+    phases = {"stand": (0.0, 0.5), "bend_down": (0.5, 1.7), "low": (1.7, 2.3), "straighten": (2.3, 3.5),
+              "stand_again": (3.5, 4.05)}
+    low = {"spine04": (0.2, 0.0, 0.0), "spine03": (0.2, 0.0, 0.0), "spine02": (0.15, 0.0, 0.0),
+           "neck01": (-0.1, 0.0, 0.0), "head": (-0.1, 0.0, 0.0),
+           "upperleg01.L": (-0.12, 0.0, 0.0), "upperleg01.R": (-0.12, 0.0, 0.0),  # from the vertical
+           "lowerleg01.L": (0.3, 0.0, 0.0), "lowerleg01.R": (0.3, 0.0, 0.0),
+           # arms swung forward with the trunk, hanging down towards the shins
+           "upperarm01.L": (-1.3, 0.55, 0.0), "upperarm01.R": (-1.3, -0.55, 0.0),
+           "lowerarm01.L": (-0.2, 0.0, 0.0), "lowerarm01.R": (-0.2, 0.0, 0.0)}
+    pose_keys = [(0.0, ARMS_RELAXED), (0.5, ARMS_RELAXED), (1.7, low), (2.3, low), (3.5, ARMS_RELAXED)]
+    pitch_keys = [(0.0, 0.0), (0.5, 0.0), (1.7, 1.05), (2.3, 1.05), (3.5, 0.0)]
+    return _body_only("bend", 4.0, phases, pose_keys, pitch_keys)
+
+
+def sit_stand() -> Script:
+    """Stand in front of a stool, sit down onto it (leaning forward as the hips go back and down), sit
+    upright a moment, lean forward again and stand up (5 s). The feet stay where they are; the stool
+    (`Script.seat`) is static furniture placed under the seated body."""
+    phases = {"stand": (0.0, 0.6), "sit_down": (0.6, 2.1), "seated": (2.1, 3.0), "stand_up": (3.0, 4.6),
+              "stand_again": (4.6, 5.05)}
+
+    def legs(thigh: float, knee: float) -> dict:  # thigh from the vertical (- forward), knee flexion
+        return {"upperleg01.L": (thigh, 0.0, 0.0), "upperleg01.R": (thigh, 0.0, 0.0),
+                "lowerleg01.L": (knee, 0.0, 0.0), "lowerleg01.R": (knee, 0.0, 0.0)}
+
+    arms_forward = {"upperarm01.L": (-0.45, 0.4, 0.0), "upperarm01.R": (-0.45, -0.4, 0.0),
+                    "lowerarm01.L": (-0.35, 0.0, 0.0), "lowerarm01.R": (-0.35, 0.0, 0.0)}
+    lowering = dict(legs(-1.2, 1.15), **arms_forward, spine03=(0.1, 0.0, 0.0))
+    seated = {**legs(-1.45, 1.45), **ARMS_RELAXED,  # hands resting towards the thighs
+              "upperarm01.L": (-0.25, 0.45, 0.0), "upperarm01.R": (-0.25, -0.45, 0.0)}
+    rising = dict(legs(-1.45, 1.45), **arms_forward, spine03=(0.12, 0.0, 0.0))
+    half_up = dict(legs(-0.7, 0.65), **arms_forward)
+    pose_keys = [(0.0, ARMS_RELAXED), (0.6, ARMS_RELAXED), (1.6, lowering), (2.1, seated), (3.0, seated),
+                 (3.5, rising), (4.1, half_up), (4.6, ARMS_RELAXED)]
+    pitch_keys = [(0.0, 0.0), (0.6, 0.0), (1.6, 0.5), (2.1, 0.12), (3.0, 0.12), (3.5, 0.6), (4.1, 0.35), (4.6, 0.0)]
+    return _body_only("sit_stand", 5.0, phases, pose_keys, pitch_keys, seat=("stool", 2.5))
+
+
+def walk_out() -> Script:
+    """Stand at the middle of the room, walk 2.3 m straight ahead (out of the views of the cameras
+    either side, `Script.leaves_ring`), stand there a moment, turn round, walk back, turn round
+    again to face the way it started, stand (10 s)."""
+    phases = {"stand": (0.0, 0.5), "walk_out": (0.5, 3.7), "away": (3.7, 4.2), "turn": (4.2, 5.4),
+              "walk_back": (5.4, 8.6), "turn_back": (8.6, 9.8), "stand_again": (9.8, 10.05)}
+    walk_keys = [(0.0, 0.0), (0.5, 0.0), (1.0, 0.9), (3.2, 0.9), (3.7, 0.0), (5.4, 0.0), (5.9, 0.9), (7.85, 0.9),
+                 (8.35, 0.0)]
+    yaw_keys = [(0.0, 0.0), (4.2, 0.0), (5.4, np.pi), (8.6, np.pi), (9.8, 2 * np.pi)]
+    return _body_only("walk_out", 10.0, phases, [(0.0, ARMS_RELAXED)], [(0.0, 0.0)], yaw_keys=yaw_keys,
+                      walk_keys=walk_keys, leaves_ring=True)
+
+
 def _table_layout(spec: ObjectSpec, near_edge: float, right_edge: float) -> tuple[np.ndarray, np.ndarray, float]:
     """Where table_lift puts the object, in the heading frame: its pose resting on the table (height
     set by `on_surface`), its pose held up, and the forward lean (rad) of the reach.
@@ -360,9 +454,11 @@ def table_lift(spec: ObjectSpec | None = None) -> Script:
 
 def get_script(name: str, spec: ObjectSpec | None = None) -> Script:
     """The named script (`SCRIPT_NAMES`); table_lift fits its grasp and layout to the object `spec`
-    (its default, the carton, when None); the others hold every object the same way."""
+    (its default, the carton, when None); the others hold every object the same way. bend,
+    sit_stand and walk_out are body-only (no object; `without_object` makes any other script so)."""
     scripts = {"pick_place": pick_place, "lift_drink": lift_drink, "push_chair": push_chair, "toss": toss,
-               "hold": hold, "drop": drop, "turn": turn}
+               "hold": hold, "drop": drop, "turn": turn, "bend": bend, "sit_stand": sit_stand,
+               "walk_out": walk_out}
     if name == "table_lift":
         return table_lift(spec)
     if name not in scripts:
@@ -372,7 +468,9 @@ def get_script(name: str, spec: ObjectSpec | None = None) -> Script:
 
 def contact_interval(script: Script) -> tuple[float, float]:
     """Seconds during which the hands touch the object: start of the first
-    contact phase to the end of the last."""
+    contact phase to the end of the last (an empty interval for a script without contact)."""
+    if not script.contact:
+        return 0.0, 0.0
     return script.phases[script.contact[0]][0], script.phases[script.contact[1]][1]
 
 
@@ -1079,12 +1177,12 @@ class Animation:
     params: object  # BodyParams (T, ...)
     vertices: np.ndarray  # (T, V, 3) float32
     keypoints: np.ndarray  # (T, 67, 3) float32
-    object_poses: np.ndarray  # (T, 4, 4) object -> world
+    object_poses: np.ndarray | None  # (T, 4, 4) object -> world; None: the person alone
     contact: np.ndarray  # (T,) bool
     props: list  # (name, mesh, 4x4 world pose) static scene meshes
     phases: dict  # phase -> (first frame, last frame)
     hand_gap: dict  # measured hand-to-object distances in contact frames
-    hand_distance: np.ndarray = None  # (T,) closest grasping-hand vertex to the object surface, metres
+    hand_distance: np.ndarray | None = None  # (T,) closest grasping-hand vertex to the object surface, metres
     timings: dict = field(default_factory=dict)  # seconds per stage
     flight: tuple | None = None  # (first, last) frame of the object's free flight, inclusive
 
@@ -1164,7 +1262,68 @@ def hand_object_distance(vertices: np.ndarray, geom: dict, spec: ObjectSpec, obj
     return sdf(local.reshape(-1, 3)).reshape(len(vertices), -1).min(1)
 
 
-def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotype, heading0: float = 0.0,
+def phase_frame_ranges(script: Script, times: np.ndarray) -> dict:
+    """Phase -> (first frame, last frame) of the frames at `times` within it (phases without a frame left out)."""
+    out = {}
+    for name, (a, b) in script.phases.items():
+        sel = np.flatnonzero((times >= a) & (times < b))
+        if sel.size:
+            out[name] = (int(sel[0]), int(sel[-1]))
+    return out
+
+
+def place_body(model, script: Script, params, times: np.ndarray, heading0: float, relaxed_curl: float):
+    """Steps 1-2: set params' global orientation (heading, pelvis pitch) and translation (the root on
+    the stance foot, the lowest vertex on the floor) in place. Returns the model-coordinate output
+    (identity orientation), the heading frames (T, 4, 4), the body rotations (T, 3, 3) and transl (T, 3)."""
+    yaw = eased_scalar(script.yaw_keys, times)
+    pitch = eased_scalar(script.pitch_keys, times)
+    with torch.no_grad():
+        local = model(params)  # identity orientation, zero translation: model coordinates
+    v_model = local.vertices.numpy()
+    root_xy = root_path(model, script, times, params.shape[:1], heading0, relaxed_curl)
+    heading = heading_frames(yaw, root_xy, heading0)
+    R = body_orientation(model, heading, pitch)
+    lowest = np.einsum("tij,tvj->tv", R[:, 2:3], v_model).min(1)  # (T,) height of the lowest vertex
+    transl = np.concatenate([root_xy, -lowest[:, None]], axis=1)
+    params.global_orient = torch.as_tensor(Rotation.from_matrix(R).as_rotvec(), dtype=params.transl.dtype)
+    params.transl = torch.as_tensor(transl, dtype=params.transl.dtype)
+    return local, heading, R, transl
+
+
+SEAT_BONES = ("pelvis", "upperleg01", "upperleg02", "spine05")  # what sits on a seat
+
+
+def seat_prop(model, script: Script, shape: torch.Tensor, heading0: float, relaxed_curl: float):
+    """The script's seat (`Script.seat`) as a static prop (kind, mesh, world pose): the body is posed and
+    placed at the seat's time alone; the stool stands square to the heading, centred under the hip
+    joints, its height (the mesh stretched along z) meeting the lowest buttock or thigh vertex over it."""
+    kind, t = script.seat
+    if kind != "stool":
+        raise ValueError(f"script {script.name}: a seat must be a stool, got {kind!r}")
+    times = np.array([float(t)])
+    params = scripted_pose(model, script, times, shape, relaxed_curl)
+    _, heading, _, _ = place_body(model, script, params, times, heading0, relaxed_curl)
+    with torch.no_grad():
+        out = model(params)
+    vertices, joints = out.vertices[0].numpy().astype(np.float64), out.joints[0].numpy().astype(np.float64)
+    names = np.array(model.joint_names)
+    hips = joints[[model.joint_names.index(f"upperleg01.{s}") for s in ("L", "R")]].mean(0)
+    axes = heading[0, :3, :3]  # columns: right, forward, up
+    local = (vertices[:, :2] - hips[:2]) @ axes[:2, :2]  # (V, 2) right and forward of the hips
+    over = (np.abs(local) < np.asarray(STOOL_SIZE[:2]) / 2).all(1)
+    bones = names[dominant_bones(model)]
+    sitting = np.any([np.char.startswith(bones, b) for b in SEAT_BONES], axis=0)
+    height = float(vertices[over & sitting, 2].min())
+    if height < 0.2:
+        raise ValueError(f"script {script.name}: the seated body is {height:.2f} m above the floor; no stool fits")
+    pose = np.eye(4)
+    pose[:3, :3] = axes
+    pose[:3, 3] = (hips[0], hips[1], height / 2)
+    return kind, _stool_mesh(size=(STOOL_SIZE[0], STOOL_SIZE[1], height)), pose
+
+
+def animate(model, script: Script, spec: ObjectSpec | None, times: np.ndarray, phenotype, heading0: float = 0.0,
             ik_iters: int = 100, polish_iters: int = 20, solve_rate_hz: float = 5.0, finger_iters: int = 60,
             grip_rate_hz: float = 3.0, relaxed_curl: float = 0.25) -> Animation:
     """Run the script on the body model at `times` (seconds of script time).
@@ -1172,8 +1331,15 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     The arm IK is solved at <= `solve_rate_hz` with `ik_iters` L-BFGS
     iterations, then polished at every frame (`polish_iters`); the finger grip
     (nearly constant while the hand holds the object) at <= `grip_rate_hz`,
-    interpolated in between."""
-    missing = [h for h in script.hands if h not in spec.grasps]
+    interpolated in between. With `spec` None the person is alone (a script
+    without hands on an object, `without_object`): no object track, no IK, no
+    contact; the Animation's object_poses and hand_distance are None."""
+    if spec is None:
+        if script.holds_object:
+            raise ValueError(f"script {script.name} handles an object; without one use without_object(script)")
+    elif not script.holds_object:
+        raise ValueError(f"script {script.name} is of the person alone: it takes no object (object {NO_OBJECT!r})")
+    missing = [h for h in script.hands if spec is not None and h not in spec.grasps]
     if missing:
         raise ValueError(f"script {script.name} holds the object with the {' and '.join(script.hands)} hand(s), "
                          f"but object {spec.name!r} has no grasp for the {' and '.join(missing)} hand")
@@ -1190,18 +1356,20 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     geom = hand_geometry(model, rest_v, rest_k)
 
     # 1-2: body placement: heading, pitch, stance-anchored root, feet on the floor.
-    yaw = eased_scalar(script.yaw_keys, times)
-    pitch = eased_scalar(script.pitch_keys, times)
-    with torch.no_grad():
-        local = model(params)  # identity orientation, zero translation: model coordinates
-    v_model = local.vertices.numpy()
-    root_xy = root_path(model, script, times, params.shape[:1], heading0, relaxed_curl)
-    heading = heading_frames(yaw, root_xy, heading0)
-    R = body_orientation(model, heading, pitch)
-    lowest = np.einsum("tij,tvj->tv", R[:, 2:3], v_model).min(1)  # (T,) height of the lowest vertex
-    transl = np.concatenate([root_xy, -lowest[:, None]], axis=1)
-    params.global_orient = torch.as_tensor(Rotation.from_matrix(R).as_rotvec(), dtype=params.transl.dtype)
-    params.transl = torch.as_tensor(transl, dtype=params.transl.dtype)
+    local, heading, R, transl = place_body(model, script, params, times, heading0, relaxed_curl)
+    props = [(name, mesh, heading[0] @ rel) for name, mesh, rel in prop_meshes(script)]
+    if script.seat is not None:
+        props.append(seat_prop(model, script, params.shape[:1], heading0, relaxed_curl))
+    if spec is None:
+        clock["placement"] = time.perf_counter()
+        with torch.no_grad():
+            out = model(params)
+        clock["end"] = time.perf_counter()
+        names = list(clock)
+        return Animation(params.detach(), out.vertices.numpy().astype(np.float32),
+                         out.keypoints.numpy().astype(np.float32), None, np.zeros(T, bool), props,
+                         phase_frame_ranges(script, times), {}, None,
+                         {b: clock[b] - clock[a] for a, b in zip(names[:-1], names[1:])})
 
     # 3: object track; 4: arms to the grasp points.
     stature = float(np.ptp(rest_v @ np.asarray(model.up_axis, float)))
@@ -1216,7 +1384,6 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
     reach = eased_scalar(script.reach_keys, times)
     gap = eased_scalar(script.gap_keys, times)
     targets = grasp_targets(script, spec, plan, gap)
-    props = [(name, mesh, heading[0] @ rel) for name, mesh, rel in prop_meshes(script)]
     surfaces = LevelSurfaces.of_props(props, script.hands_above)
     clock["placement"] = time.perf_counter()
     params.body_pose = coarse_to_fine_ik(model, params, targets, reach, geom, sdf, obj_poses, times, solve_rate_hz,
@@ -1263,11 +1430,7 @@ def animate(model, script: Script, spec: ObjectSpec, times: np.ndarray, phenotyp
         out = model(params)
     vertices = out.vertices.numpy().astype(np.float32)
     keypoints = out.keypoints.numpy().astype(np.float32)
-    phase_frames = {}
-    for name, (a, b) in script.phases.items():
-        sel = np.flatnonzero((times >= a) & (times < b))
-        if sel.size:
-            phase_frames[name] = (int(sel[0]), int(sel[-1]))
+    phase_frames = phase_frame_ranges(script, times)
     gaps = hand_object_gap(vertices, geom, spec, obj_poses, contact, script.hands)
     distance = hand_object_distance(vertices, geom, spec, obj_poses, script.hands)
     clock["end"] = time.perf_counter()

@@ -14,6 +14,7 @@ import numpy as np
 import trimesh
 
 OBJECT_NAMES = ("box", "cup", "chair", "block", "board", "carton", "flat_box", "tool", "ball")
+NO_OBJECT = "none"  # the object "name" of a take of the person alone (no object anywhere)
 
 
 @dataclass(frozen=True)

@@ -71,7 +71,8 @@ def test_check_calibration_aligned_and_drifted():
     print(f"drifted 20 mm / 1.5 deg: correction {bad.correction_rotation_deg:.3f} deg "
           f"{bad.correction_translation_mm:.2f} mm, median {bad.median_distance_mm:.2f} mm, "
           f"icp rmse {bad.icp_rmse_mm:.2f} mm")
-    assert abs(bad.correction_translation_mm - 20.0) < 3.0
+    # measured where the views overlap, not at the drift's pivot: the 1.5 deg turn moves it a few mm more
+    assert abs(bad.correction_translation_mm - 20.0) < 4.0
     # the turn about the vertical shows only on box faces both views see (their sides along the
     # baseline, which do not hold it), so at least the tilt (0.88 deg, held by the floor) is found
     assert 0.8 < bad.correction_rotation_deg < 1.8 and bad.flagged
@@ -316,3 +317,34 @@ def test_a_camera_whose_depth_meets_no_other_view_is_suspected():
     assert isolated_cameras([pair("cam0", "cam1", 500), pair("cam1", "cam2", 300), pair("cam2", "cam0", 40)]) == []
     assert isolated_cameras([pair("cam0", "cam1", 0)]) == []  # two views: nothing to tell which is off
     assert isolated_cameras([pair("cam0", "cam1", 0), pair("cam1", "cam2", 0)]) == []  # nothing overlaps at all
+
+
+def test_a_view_cut_across_the_floor_is_not_flagged_and_a_bumped_camera_still_is(tmp_path):
+    """The sample with camera 0 seeing only the right half of its image: its neighbours see floor beyond
+    the cut, as beyond the shadow a table or a shelf casts, where camera 0 saw nothing. Matched to the last
+    floor camera 0 saw, those points all lean outward, and the exact rig read cam3 -> cam0 as 154 mm off
+    (flagged). Now no pair is flagged, while camera 2 bumped by 15 mm and 0.5 deg is flagged in both its
+    pairs and named alone, and so is camera 0 itself, bumped."""
+    from conftest import SAMPLE_SESSION
+
+    from intercap.calib.alignment import suspect_cameras
+    from intercap.config import PrepareConfig
+    from intercap.stages.prepare.stage import check_views
+    from intercap.synth.partial import crop_view
+    from tools.bench_calibration_check import drift_transform, load_views
+
+    cfg = PrepareConfig()
+    cut = crop_view(SAMPLE_SESSION, tmp_path / "s", "cam0", (160, 0, 160, 288))
+    session, centers, per_view = load_views(cut, cfg.calib_frames)
+    names = [c.name for c in session.cameras]
+    exact = check_views(per_view, names, centers, cfg)
+    print(format_agreement(exact))
+    assert not any(r.flagged for r in exact) and max(r.correction_translation_mm for r in exact) < 5.0
+    bumps = ((2, 2, {("cam1", "cam2"), ("cam2", "cam3")}), (0, 5, {("cam0", "cam1"), ("cam3", "cam0")}))
+    for camera, seed, pairs in bumps:
+        T = drift_transform(0.5, 15.0, seed=seed, pivot=centers[camera])
+        moved = [v if c != camera else [f @ T[:3, :3].T + T[:3, 3] for f in v] for c, v in enumerate(per_view)]
+        drifted = check_views(moved, names, centers, cfg)
+        print(format_agreement(drifted))
+        assert {(r.cam_a, r.cam_b) for r in drifted if r.flagged} == pairs
+        assert suspect_cameras(drifted) == [names[camera]]

@@ -116,16 +116,24 @@ def test_report_shows_the_refined_calibration(tmp_path):
     correction and the check again with the refined poses."""
     out = tmp_path / "out"
     (out / "prepare").mkdir(parents=True)
-    pair = {"cam_a": "cam0", "cam_b": "cam1", "correction_translation_mm": 24.2, "flagged": True}
+    pair = {"cam_a": "cam0", "cam_b": "cam1", "correction_translation_mm": 24.2, "translation_sigma_mm": 1.5,
+            "icp_rmse_mm": 3.1, "blocks": 400, "fitness": 0.6, "full_translation_mm": 30.0, "flagged": True}
     (out / "prepare" / "calibration_check.json").write_text(json.dumps({
         "frames": [0], "warn_mm": 6.0, "pairs": [pair], "flagged": [pair],
-        "after_refinement": {"pairs": [{**pair, "correction_translation_mm": 3.7, "flagged": False}], "flagged": []}}))
+        "after_refinement": {"pairs": [{**pair, "correction_translation_mm": 3.7, "translation_sigma_mm": None,
+                                        "flagged": False}], "flagged": []}}))
     (out / "prepare" / "calibration_refined.json").write_text(json.dumps({"cameras": [], "corrections": [
         {"name": "cam0", "moved_mm": 7.48, "turned_deg": 0.182}, {"name": "cam1", "moved_mm": 6.68, "turned_deg": 0.163}]}))
     calibration = _section(write_report(out, progress=False).read_text(), "calibration")
     assert "1 camera pair(s) disagree" in calibration and "were refined" in calibration
     assert "<td>7.48</td>" in calibration and "<td>3.7</td>" in calibration
     assert "no camera pair flagged after refining" in calibration
+    # a few readable columns with units: the pair, the residual, the correction ± its sigma, a verdict
+    first = re.search(r"<table[^>]*>(.*?)</table>", calibration, re.S).group(1)
+    heads = re.findall(r"<th>([^<]*)</th>", first)
+    assert heads == ["cameras", "residual (mm)", "correction (mm)", "verdict"], heads
+    assert "<td>cam0 – cam1</td>" in first and "<td>24.2 ± 1.5</td>" in first and "disagrees" in first
+    assert "<th>moved (mm)</th>" in calibration and "<th>turned (°)</th>" in calibration
 
 
 def test_report_from_ground_truth(session_dir, tmp_path):
@@ -147,7 +155,7 @@ def test_report_from_ground_truth(session_dir, tmp_path):
     assert all((out / "report" / rel).is_file() for rel in links)
     assert (out / "report" / "global_cam0.webm").is_file()
     # the ground truth evaluated against itself
-    rows = dict(re.findall(r"<tr><td>(\w+)</td><td>([^<]*)</td></tr>", _section(html, "evaluation")))
+    rows = dict(re.findall(r'<tr><td title="(\w+)">[^<]*</td><td>([^<]*)</td>', _section(html, "evaluation")))
     assert float(rows["body_surface_mm"]) < 0.5 and float(rows["object_add_mm"]) < 1e-3
     assert float(rows["contact_accuracy_pct"]) == 100
     # perfect keypoints reproject onto the simulated detections within their noise (2-3 px)
@@ -198,3 +206,74 @@ def test_report_warns_when_the_joint_fit_left_the_keypoints(tmp_path):
         (out / "metrics.json").write_text(json.dumps({"global": {"keypoint_energy_ratio": ratio}}))
         motion = _section(write_report(out, progress=False).read_text(), "motion")
         assert ("energy x6.2" in motion and "fps (30)" in motion) == warned, motion
+
+
+def test_stage_figures_read_as_tables_with_units(tmp_path):
+    """metrics.json's figures show as one small table per stage: a readable name, the value, the unit
+    taken from the key (mm, px, %, % body weight, N, mm/s); no key=value dumps."""
+    from intercap.evaluation.report import figure_name
+
+    assert figure_name("penetration_mm_max") == ("penetration (max)", "mm")
+    assert figure_name("residual_root_force_pct_bw_p95") == ("residual root force (p95)", "% body weight")
+    assert figure_name("ground_reaction_mean_n") == ("ground reaction (mean)", "N")
+    assert figure_name("foot_skating_mm_s") == ("foot skating", "mm/s")
+    assert figure_name("frames_in_contact") == ("frames in contact", "")
+    out = tmp_path / "out"
+    (out / "body").mkdir(parents=True)
+    (out / "body" / "DONE.json").write_text("{}")
+    (out / "metrics.json").write_text(json.dumps({
+        "body": {"seconds": 25.4, "seconds_per_frame": 0.85, "fit_to_data_mm_median": 12.7897, "frames_fitted": 30,
+                 "reprojection_px_median": 1.46, "keypoints": "session", "repaired_frame_ids": []},
+        "contact": {"method": "3d", "region_frames": {"left_hand": 14, "right_hand": 15}},
+        "global": {"energy_before": {"body_keypoints": 100.0, "contact": 50.0},
+                   "energy_after": {"body_keypoints": 110.0, "contact": 5.0}}}))
+    stages = _section(write_report(out, progress=False).read_text(), "stages")
+    assert "=" not in re.sub(r"<[^>]*>", "", stages)
+    assert '<td>fit to data (median)</td><td>12.8</td><td class="unit">mm</td>' in stages
+    assert '<td>reprojection (median)</td><td>1.46</td><td class="unit">px</td>' in stages
+    assert "<td>frames fitted</td><td>30</td>" in stages and "repaired" not in stages  # empty lists left out
+    assert "left hand 14\nright hand 15" in stages
+    assert "<td>body keypoints</td><td>100</td><td>110</td><td>10</td>" in stages  # energy: before, after, change %
+    assert "<th>time (s)</th>" in stages and "<td>25.4</td>" in stages
+
+
+def test_report_uses_the_sessions_ground_truth(session_dir, tmp_path):
+    """A session with ground_truth/ is evaluated without --gt; one without says how to give it."""
+    import shutil
+
+    out = results_from_ground_truth(session_dir, tmp_path / "out")
+    cfg = _cfg()
+    cfg.report.overlay_stages = []
+    evaluation = _section(write_report(out, session=session_dir, cfg=cfg, progress=False).read_text(), "evaluation")
+    rows = dict(re.findall(r'<tr><td title="(\w+)">[^<]*</td><td>([^<]*)</td>', evaluation))
+    assert float(rows["body_surface_mm"]) < 0.5 and float(rows["contact_accuracy_pct"]) == 100
+    bare = tmp_path / "bare_session"
+    shutil.copytree(session_dir, bare, ignore=shutil.ignore_patterns("ground_truth"))
+    (out / "eval.json").unlink()
+    evaluation = _section(write_report(out, session=bare, cfg=cfg, progress=False).read_text(), "evaluation")
+    assert "not run" in evaluation and "no ground_truth/ folder" in evaluation
+
+
+def test_physics_plot_gives_each_force_its_own_colour(monkeypatch):
+    """Every line of the forces plot has a colour of its own (the object residual once took the left
+    foot's green)."""
+    from matplotlib.colors import to_hex
+
+    from intercap.evaluation import report
+
+    drawn = []
+
+    def record(fig, alt):
+        drawn.append([to_hex(line.get_color()) for line in fig.axes[0].lines])
+        return real(fig, alt)
+
+    real = report.figure_html
+    monkeypatch.setattr(report, "figure_html", record)
+    T = 6
+    physics = {"hand_force": np.ones((T, 2, 3)), "foot_force": np.ones((T, 2, 3)), "frame_ids": np.arange(T),
+               "object_ground_force": np.ones((T, 3)), "residual_force": np.ones((T, 3)),
+               "object_residual_force": np.ones((T, 3))}
+    report.physics_section(physics, np.arange(T))
+    assert len(drawn[0]) == 7 and len(set(drawn[0])) == 7, drawn
+    colours = report.series_colours(["body", "global", "gt", "a", "b", "c", "d", "e", "f", "g", "h", "i", "j"])
+    assert len(set(colours.values())) == 13, colours

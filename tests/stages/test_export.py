@@ -27,6 +27,9 @@ def write_results(out):
     verts[NAN_BODY] = np.nan
     np.save(out / "body_vertices.npy", verts)
     shutil.copy(GT / "body_faces.npy", out / "body_faces.npy")
+    keypoints = np.load(GT / "keypoints3d.npy").astype(np.float32)
+    keypoints[NAN_BODY] = np.nan
+    np.save(out / "keypoints3d.npy", keypoints)
     params = dict(np.load(GT / "body_params.npz"))
     params["valid"] = np.isfinite(verts).all((1, 2))
     np.savez(out / "body_params.npz", **params)

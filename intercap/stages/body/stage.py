@@ -21,7 +21,7 @@ after (one person: re-fitted per batch it drifted). A frame with too little
 evidence (see `observations.usable_frames`) is marked invalid and written as
 NaN, never invented.
 
-Outputs (SESSION_FORMAT.md): body_params.npz (the model's parameters per
+Outputs (docs/outputs.md): body_params.npz (the model's parameters per
 frame, `model`, `valid`, per-frame `shape` and its sequence mean `shape_mean`),
 body_vertices.npy, body_faces.npy, keypoints3d.npy, kept in OUT/body/ (with
 the resumable checkpoints and overlay pictures) and shown at OUT/ until the
@@ -424,7 +424,7 @@ PER_FRAME_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "ke
 
 def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray, frame_ids,
                       **extra) -> tuple[np.ndarray, np.ndarray]:
-    """PER_FRAME_FILES of SESSION_FORMAT.md into `folder`, frames not `valid` NaN; returns the
+    """PER_FRAME_FILES of docs/outputs.md into `folder`, frames not `valid` NaN; returns the
     vertices (T, V, 3) and keypoints (T, 67, 3). `extra` arrays go into body_params.npz beside the
     parameters."""
     T = len(valid)
@@ -452,7 +452,7 @@ def save_body_results(folder: Path, model, fitted: BodyParams, valid: np.ndarray
 
 def write_outputs(session, model, fitted: BodyParams, valid, reproj, seconds, out_dir: Path, bcfg, cameras,
                   fit_to_data_mm: np.ndarray, reinitialised: np.ndarray) -> dict:
-    """The SESSION_FORMAT.md files, kept in OUT/body/ and shown at OUT/ until the `global` stage
+    """The docs/outputs.md files, kept in OUT/body/ and shown at OUT/ until the `global` stage
     replaces them; frames without a fit are NaN. body_params.npz also holds the per-frame
     `reprojection_px`, `fit_to_data_mm` and `reinitialised`."""
     T = session.num_frames

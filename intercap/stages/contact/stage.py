@@ -23,7 +23,7 @@ Frames whose needed per-frame result is missing (NaN body or object pose) count 
 no contact and are listed. Detected labels can be cleaned in time (`clean_labels`:
 gaps and runs shorter than `contact.clean_frames` are filled / dropped).
 
-Writes OUT/contact.npy (bool (T,), SESSION_FORMAT.md) and OUT/contact/contact.npz:
+Writes OUT/contact.npy (bool (T,), docs/outputs.md) and OUT/contact/contact.npz:
 contact (T,), method, frame_ids (T,), region_names (R,), region_distance_m (T, R)
 (NaN where unknown), region_contact (T, R) (which regions touch in each contact
 frame: for 3D those nearer than T_d; for annotated and 2D labels the nearest

@@ -3,7 +3,7 @@
 A detector turns one RGB image into a (137, 3) array [x, y, conf] in pixels:
 BODY_25 (25), left hand (21), right hand (21), face (70), "left"/"right" being
 the person's own sides, confidence 0 = not detected. That is exactly what an
-OpenPose JSON holds (SESSION_FORMAT.md), so keypoints given with a session and
+OpenPose JSON holds (docs/session_format.md), so keypoints given with a session and
 keypoints detected here are read the same way by the body stage.
 
 Detectors sit behind `KeypointDetector`; `make_detector(name)` builds one and
@@ -181,7 +181,7 @@ def make_detector(name: str = "mediapipe", **options) -> KeypointDetector:
     if why is not None:
         raise DetectorUnavailable(
             f"keypoint detector {name!r} is not available: {why}. To use it, {how}. "
-            "Or put OpenPose JSON into the session's <camera>/keypoints/ folders (SESSION_FORMAT.md)."
+            "Or put OpenPose JSON into the session's <camera>/keypoints/ folders (docs/session_format.md)."
         )
     return build(**options)
 

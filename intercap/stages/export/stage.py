@@ -1,7 +1,7 @@
 """The `export` stage: meshes per frame, one self-describing dataset file, and
 optionally a BEHAVE-style folder, from the final results at OUT/.
 
-Reads (SESSION_FORMAT.md results folder): body_vertices.npy, body_faces.npy,
+Reads (the results folder of docs/outputs.md): body_vertices.npy, body_faces.npy,
 body_params.npz, object_poses.npz, contact.npy, contact/contact.npz,
 prepare/ground.json and physics/physics.npz; each is optional (what is absent
 is left out and said so), but at least the body or the object must be there.
@@ -66,7 +66,10 @@ def load_results(out_dir: Path, T: int) -> dict:
     gpath = out_dir / "prepare" / "ground.json"
     res["ground"] = read_json(gpath) if gpath.exists() else None
     res["physics"] = _load_npz(out_dir / "physics" / "physics.npz")
+    kpath = out_dir / "keypoints3d.npy"
+    res["keypoints3d"] = np.load(kpath) if kpath.exists() else None
     for name, rows in (("body_vertices", res["body_vertices"]), ("contact", res["contact"]),
+                       ("keypoints3d", res["keypoints3d"]),
                        ("object_poses.npz R", None if res["object"] is None else res["object"].get("R"))):
         if rows is not None and len(rows) != T:
             raise ExportError(f"{out_dir}: {name} has {len(rows)} frames, the session {T}; rerun the stages")
@@ -125,6 +128,16 @@ def _add_body(a: dict, session, res: dict, T: int, float16: bool) -> None:
         for k, v in params.items():
             if k != "model":
                 a[f"body_param_{k}"] = v
+    if res.get("joints3d") is not None:
+        a["joints3d"] = np.asarray(res["joints3d"], np.float32)
+        a["joint_names"] = np.asarray(res["joint_names"], str)
+    for k, v in (res.get("smplx") or {}).items():
+        a[f"smplx_{k}"] = np.asarray(v, np.float32)
+    if res.get("keypoints3d") is not None:
+        from intercap.body_models.keypoints import KEYPOINT_NAMES
+
+        a["keypoints3d"] = np.asarray(res["keypoints3d"], np.float32)
+        a["keypoint_names"] = np.asarray(KEYPOINT_NAMES[:a["keypoints3d"].shape[1]], str)
 
 
 def _add_object(a: dict, session, res: dict, T: int) -> None:
@@ -178,7 +191,7 @@ def _add_ground(a: dict, session, res: dict) -> None:
     a["ground_point"], a["ground_normal"] = point, normal
 
 
-def dataset_arrays(session, res: dict, float16: bool = False) -> dict[str, np.ndarray]:
+def dataset_arrays(session, res: dict, float16: bool = False, provenance: dict | None = None) -> dict[str, np.ndarray]:
     """Everything a downstream user needs, as named arrays (the keys of OUT/export/<session>.npz).
 
     Frames: row i of every per-frame array is frame `frame_ids[i]` (T rows, one per session frame,
@@ -195,7 +208,21 @@ def dataset_arrays(session, res: dict, float16: bool = False) -> dict[str, np.nd
     body_faces (F, 3)            int32, triangles of body_vertices (counter-clockwise seen from outside)
     body_param_<name> (T, ...)   every per-frame array of OUT/body_params.npz, unchanged (anny: shape (T, 6)
                                  phenotype in [0, 1], global_orient (T, 3) and the poses (T, J, 3) axis-angle
-                                 radians, transl (T, 3) metres, expression (T, 52)); and body_param_shape_mean
+                                 radians, transl (T, 3) metres, expression (T, 52)); and body_param_shape_mean.
+                                 Our convention: world = R(global_orient) @ v_model + transl, rotating about
+                                 the model's origin (for SMPL-X use the smplx_* keys below)
+    joints3d (T, J, 3)           float32, world, metres: the body model's skeleton joints of the fit (NaN where
+                                 body_valid is False)
+    joint_names (J,)             str, the body model's joint names, in joints3d's order
+    keypoints3d (T, 67, 3)       float32, world: BODY_25 + left hand 21 + right hand 21 of the fit (OUT/keypoints3d.npy)
+    keypoint_names (67,)         str, OpenPose names of keypoints3d's rows ("nose", ..., "left_hand_wrist", ...)
+    smplx_<name> (T, ...)        float32, body_model "smplx" only: smplx's own forward arguments reproducing
+                                 body_vertices: smplx_betas, smplx_global_orient, smplx_transl, smplx_body_pose
+                                 (T, 63), smplx_jaw_pose, smplx_leye_pose, smplx_reye_pose, smplx_left_hand_pose,
+                                 smplx_right_hand_pose (T, 45), smplx_expression; for smplx.create(model_type=
+                                 "smplx", use_pca=False, flat_hand_mean=True, num_betas, num_expression_coeffs
+                                 as their widths). smplx rotates about the pelvis, so smplx_transl =
+                                 transl + R @ pelvis - pelvis (pelvis: the shaped rest pose's root joint)
     object_name ()               str, session.yaml's object name; "" for body-only sessions
     object_vertices (K, 3)       float64, the object mesh as stored in the session, object coordinates, metres
     object_faces (M, 3)          int32
@@ -216,8 +243,13 @@ def dataset_arrays(session, res: dict, float16: bool = False) -> dict[str, np.nd
     ground_normal (3,)           float64, the floor plane's unit normal (normal points up, to the person's
                                  side; gravity = -normal): OUT/prepare/ground.json, else session.yaml, else NaN
     physics_<key>                every array of OUT/physics/physics.npz when the physics stage has run
-                                 (SI units, world frame; keys in SESSION_FORMAT.md)
-    Absent results give absent keys (no body: no body_*; no contact stage: no contact*)."""
+                                 (SI units, world frame; keys in docs/outputs.md)
+    intercap_version ()          str, the intercap that wrote the file
+    torch_version ()             str
+    body_model_version ()        str, the body model's package and version ("anny 0.6.2"); "" without a body
+    config_hash ()               str, first 16 hex digits of the sha256 of the run's OUT/config.yaml
+    command_line ()              str, the command that ran the export (shell-quoted argv)
+    Absent results give absent keys (no body: no body_*, joints3d; no contact stage: no contact*)."""
     T = session.num_frames
     frame_ids = np.asarray(session.frame_ids, np.int64)
     a: dict[str, np.ndarray] = {
@@ -233,10 +265,100 @@ def dataset_arrays(session, res: dict, float16: bool = False) -> dict[str, np.nd
     _add_ground(a, session, res)
     for k, v in (res["physics"] or {}).items():
         a[f"physics_{k}"] = v
+    for k, v in (provenance or {}).items():
+        a[k] = np.array(str(v))
     return a
 
 
+def provenance(out_dir: Path, cfg, body_model: str) -> dict[str, str]:
+    """What made the dataset file (its provenance keys)."""
+    import hashlib
+    import shlex
+    import sys
+    from importlib import metadata
+
+    import torch
+
+    from intercap import __version__
+    from intercap.config import config_to_dict
+
+    path = Path(out_dir) / "config.yaml"
+    if path.is_file():
+        config = path.read_bytes()
+    else:
+        import yaml
+
+        config = yaml.safe_dump(config_to_dict(cfg), sort_keys=False).encode()
+    version = ""
+    if body_model:
+        try:
+            version = f"{body_model} {metadata.version(body_model)}"
+        except metadata.PackageNotFoundError:
+            version = body_model
+    return {"intercap_version": __version__, "torch_version": torch.__version__, "body_model_version": version,
+            "config_hash": hashlib.sha256(config).hexdigest()[:16], "command_line": shlex.join(sys.argv)}
+
+
+def body_model_arrays(res: dict, cfg, T: int) -> None:
+    """Add to `res` what the body model gives from OUT/body_params.npz: `joints3d` (T, J, 3) with
+    `joint_names`, and for SMPL-X `smplx` (its own forward arguments). Frames without a fit stay NaN.
+    Left out, with a warning, when the parameters are not the configured model's."""
+    params = res["body_params"]
+    if params is None or res["body_vertices"] is None:
+        return
+    import torch
+
+    from intercap.body_models import BodyParams, shared_model
+    from intercap.body_models.base import PARAM_FIELDS
+
+    missing = [k for k in PARAM_FIELDS if k not in params]
+    if missing:
+        log.warning("export: body_params.npz lacks %s: no joints3d", ", ".join(missing))
+        return
+
+    name = str(params.get("model", cfg.body_model.name))
+    if name != cfg.body_model.name:
+        log.warning("export: body_params.npz is of %s, the config's body model %s: no joints3d", name,
+                    cfg.body_model.name)
+        return
+    try:
+        model = shared_model(cfg.body_model)
+    except (ImportError, FileNotFoundError) as exc:
+        log.warning("export: body model %s not available (%s): no joints3d", name, exc)
+        return
+    ok = body_valid(res["body_vertices"], T)
+    joints = np.full((T, len(model.joint_names), 3), np.nan, np.float32)
+    smplx_arrays: dict[str, np.ndarray] = {}
+    worst = 0.0
+    with torch.no_grad():
+        for s in range(0, T, 16):
+            idx = np.arange(s, min(s + 16, T))
+            idx = idx[ok[idx]]
+            if not len(idx):
+                continue
+            batch = BodyParams.from_numpy_dict({k: np.asarray(params[k])[idx] for k in PARAM_FIELDS}, dtype=model.dtype)
+            out = model(batch)
+            joints[idx] = out.joints.cpu().numpy()
+            worst = max(worst, float(np.abs(out.vertices.cpu().numpy() - np.asarray(res["body_vertices"][idx])).max()))
+            if hasattr(model, "smplx_parameters"):
+                for k, v in model.smplx_parameters(batch).items():
+                    if k not in smplx_arrays:
+                        smplx_arrays[k] = np.full((T, *v.shape[1:]), np.nan, np.float32)
+                    smplx_arrays[k][idx] = v.cpu().numpy()
+    if worst > 1e-3:
+        log.warning("export: body_params.npz gives vertices up to %.1f mm from body_vertices.npy; joints3d follow "
+                    "the parameters", worst * 1000)
+    res["joints3d"], res["joint_names"] = joints, list(model.joint_names)
+    if smplx_arrays:
+        res["smplx"] = smplx_arrays
+
+
 # -- BEHAVE-style folders ---------------------------------------------------------------------
+# body_params.npz arrays of the whole take, not per frame (one with as many entries as the take has
+# frames must not be cut into frames)
+SEQUENCE_PARAMS = ("model", "shape_mean")
+
+
 def behave_frame_name(seconds: float) -> str:
     """BEHAVE's frame folder name: 't' + seconds with 3 decimals, 8 characters wide ('t0003.000')."""
     return f"t{seconds:08.3f}"
@@ -315,8 +437,8 @@ def write_behave(session, res: dict, out_dir: Path, frame_name: str = "world", p
             angle, trans = behave_object_params(R, t, center, A, b)
             posed = pose_object(mesh.vertices, R, t) @ A.T + b
     params = res["body_params"] or {}
-    per_frame = {k: v for k, v in params.items() if k != "model" and getattr(v, "ndim", 0) >= 1 and len(v) == T
-                 and k not in ("valid", "frame_ids")}
+    per_frame = {k: v for k, v in params.items() if k not in SEQUENCE_PARAMS and getattr(v, "ndim", 0) >= 1
+                 and len(v) == T and k not in ("valid", "frame_ids")}
     pose_keys = ["global_orient"] + sorted(k for k in per_frame if k.endswith("pose"))
     folder_names = behave_frame_names(session)
     for i in tqdm(range(T), desc="export behave", unit="frame", disable=not progress):
@@ -330,6 +452,8 @@ def write_behave(session, res: dict, out_dir: Path, frame_name: str = "world", p
                 fit["pose"] = np.concatenate([p[k].reshape(-1) for k in pose_keys])
             if "shape" in p:
                 fit["betas"] = p["shape"]
+            if "shape_mean" in params:  # the take's one shape, whole in every frame's file
+                fit["shape_mean"] = np.asarray(params["shape_mean"])
             if "transl" in p:
                 fit["trans"] = p["transl"]
             _write_pickle(folder / "person" / "fit02" / "person_fit.pkl", fit)
@@ -397,7 +521,9 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     if len(skipped_body) or len(skipped_obj):
         log.warning("export: %d frame(s) without a body fit and %d without an object pose get no mesh",
                     len(skipped_body), len(skipped_obj))
-    arrays = dataset_arrays(session, res, ecfg.vertices_float16)
+    body_model_arrays(res, cfg, T)
+    model_name = str((res["body_params"] or {}).get("model", session.body_model)) if res["body_vertices"] is not None else ""
+    arrays = dataset_arrays(session, res, ecfg.vertices_float16, provenance(out_dir, cfg, model_name))
     dataset = out_dir / "export" / f"{Path(session.root).name}.npz"
     save_npz(dataset, **arrays)
     figures["dataset"] = str(dataset)
@@ -409,4 +535,8 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     figures["left_out"] = missing
     if ecfg.behave:
         figures.update(write_behave(session, res, out_dir, ecfg.behave_frame, progress))
+    if ecfg.glb:
+        from intercap.stages.export.gltf import write_session_glb
+
+        figures.update(write_session_glb(session, res, out_dir))
     return figures

@@ -38,6 +38,14 @@ class GlobalConfig:
     hand_reach_m: float = 0.10  # metres: a hand nearer than this to the object in a contact frame is grasping
     object_inside_body_share: float = 0.1  # a tracked pose with more of its surface 2 cm inside the body is distrusted
 
+    # frames whose per-frame fit left its data (`observations.departed_frames`), started from their neighbours
+    repair_factor: float = 2.5  # fit-to-data above this many times the median of the frames around; 0: off
+    repair_floor_mm: float = 40.0  # mm: never a departed frame below this fit-to-data
+    repair_reach: int = 15  # frames either side whose median fit-to-data a frame is compared with
+
+    start_smoothing_s: float = 0.05  # seconds: the per-frame body low-passed (Gaussian sigma) as the fit's start; 0: off
+    shape_change_limit_mm: float = 15.0  # mm: the sequence-mean phenotype moving a frame's body more: frames keep their own
+
     # checks of the take (warnings in the log and the report)
     max_keypoint_energy_ratio: float = 3.0  # warn when the fit raises E_J over this many times (fps wrong?); 0: off
     max_camera_offset_ms: float = 4.0  # ms: warn of cameras whose frames lag or lead the others' more; 0: off
@@ -52,6 +60,7 @@ class GlobalConfig:
     w_ground: float = 1.0e6  # E_G: body and object below the floor, per vertex; stiff, as all views' keypoints agree
     w_object_acceleration: float = 30.0  # E_A: the object's points' acceleration, (m/s^2)^2 per frame
     w_body_acceleration: float = 10.0  # the body vertices' acceleration, (m/s^2)^2 per frame; more oversmooths
+    w_body_acceleration_alone: float = 40.0  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
     w_body_motion_prior: float = 0.0  # E_S, the learned (LEMO-style) body motion prior; 0: off (session-dependent)
     w_hand_motion_prior: float = 0.0  # E_L + E_R, the learned hand motion priors; 0: off (used with E_S)
     w_flight: float = 1.0e9  # GraviCap: the object's centre onto the gravity parabola in free flight (m^2); 0: off

@@ -42,15 +42,16 @@ def windows(T: int, size: int, overlap: int, history: int) -> list[tuple[int, in
 class GlobalFitter:
     """One window's joint problem; holds the model, the body stage's fitter and the object shape."""
 
-    def __init__(self, model, cameras: Cameras, bcfg, gcfg, shape: ObjectShape, ground, fps: float,
+    def __init__(self, model, cameras: Cameras, bcfg, gcfg, shape: ObjectShape | None, ground, fps: float,
                  table: tuple[Term, ...] = TERMS):
         """`table`: the energy's terms (`terms.TERMS`; a test may pass another), their weights read from
-        `gcfg` (section "") and `bcfg` (section "body")."""
+        `gcfg` (section "") and `bcfg` (section "body"). `shape` None: a body-only joint fit (the
+        object's terms do not apply and its pose is no variable)."""
         self.model, self.bcfg, self.gcfg = model, bcfg, gcfg
         self.table = check_weights(table, {"": type(gcfg), "body": type(bcfg)})
         self.configs = {"": gcfg, "body": bcfg}
         self.body = BodyFitter(model, cameras, bcfg)
-        self.shape = shape.on(self.body.subset.device)
+        self.shape = None if shape is None else shape.on(self.body.subset.device)
         self.fps = float(fps)
         subset = self.body.subset
         self.ground = None if ground is None else (
@@ -123,8 +124,9 @@ class GlobalFitter:
         names = ("global_orient", "transl", "left_hand_pose", "right_hand_pose")
         leaves = {n: getattr(init, n)[fixed:].detach().clone() for n in names}
         leaves["body_pose"] = init.body_pose[fixed:, free].detach().clone()
-        leaves["rotation"] = torch.zeros(W - fixed, 3, dtype=R0.dtype, device=R0.device)
-        leaves["shift"] = torch.zeros(W - fixed, 3, dtype=R0.dtype, device=R0.device)
+        if self.shape is not None:
+            leaves["rotation"] = torch.zeros(W - fixed, 3, dtype=R0.dtype, device=R0.device)
+            leaves["shift"] = torch.zeros(W - fixed, 3, dtype=R0.dtype, device=R0.device)
         still = torch.zeros(fixed, 3, dtype=R0.dtype, device=R0.device)
 
         def current():
@@ -132,6 +134,8 @@ class GlobalFitter:
             pose = init.body_pose.detach()[fixed:].index_copy(1, free, leaves["body_pose"])
             body = BodyParams(shape=init.shape.detach(), expression=init.expression.detach(),
                               body_pose=torch.cat([init.body_pose[:fixed].detach(), pose]), **values)
+            if self.shape is None:
+                return body, R0, c0
             R, centre = self.object_pose(R0, c0, torch.cat([still, leaves["rotation"]]),
                                          torch.cat([still, leaves["shift"]]))
             return body, R, centre

@@ -59,14 +59,73 @@ class PerFrameResults:
     contact: np.ndarray  # (T,) bool
     hand_distance: np.ndarray | None  # (T, 2) metres from the left, right hand to the object (None: not measured yet)
     grasping: np.ndarray | None = None  # (T, 2) bool: the hand holds the object (a contact frame, hand within reach)
+    repaired: np.ndarray | None = None  # (T,) bool: fitted frames that had left their data, started from their neighbours
 
 
 
-def load_per_frame(session, out_dir: Path, model) -> PerFrameResults:
-    """Read OUT/body/, OUT/object/ and the contact stage's labels; clear errors when missing."""
+def departed_frames(fit_to_data_mm: np.ndarray, valid: np.ndarray, factor: float, floor_mm: float,
+                    reach: int) -> np.ndarray:
+    """(T,) bool: fitted frames whose fit left their own depth points, `fit_to_data_mm` (the body stage's
+    figure) above `factor` x the median of the fitted frames within `reach` either side, and above
+    `floor_mm`. A frame without depth points (NaN) never counts."""
+    gap = np.where(valid, np.asarray(fit_to_data_mm, np.float64), np.nan)
+    out = np.zeros(len(gap), bool)
+    for i in np.flatnonzero(np.isfinite(gap) & (gap > floor_mm)):
+        near = gap[max(0, i - reach):i + reach + 1]
+        near = near[np.isfinite(near)]
+        out[i] = gap[i] > factor * float(np.median(near))
+    return out
+
+
+def shape_change_mm(model, body: BodyParams, own_shape: np.ndarray, valid: np.ndarray, frames: int = 32) -> float:
+    """The largest mean vertex displacement (mm), over up to `frames` fitted frames spread over the take,
+    between `body` (its shape the sequence mean) and the same poses with each frame's own phenotype."""
+    rows = np.flatnonzero(valid)
+    rows = rows[np.unique(np.linspace(0, len(rows) - 1, min(frames, len(rows))).round().astype(int))]
+    picked = body[torch.as_tensor(rows)]
+    with torch.no_grad():
+        mean = model(picked).vertices
+        picked.shape = torch.as_tensor(own_shape[rows], dtype=picked.shape.dtype, device=picked.shape.device)
+        own = model(picked).vertices
+    return float(1000 * (own - mean).norm(dim=-1).mean(-1).max())
+
+
+SMOOTHED = ("global_orient", "transl", "body_pose", "left_hand_pose", "right_hand_pose")
+
+
+def smoothed_start(arrays: dict, sigma_frames: float) -> dict:
+    """The per-frame parameters (T, ...) low-passed in time (Gaussian, `sigma_frames`), the joint fit's
+    start: frame-to-frame noise of the per-frame fits is the stiffest part of the acceleration term, which a
+    few L-BFGS steps leave mostly in place at 30 fps. The root's rotation is low-passed as a quaternion of
+    one sign (a person turning round passes every angle), the joints' small rotations as axis-angle."""
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.spatial.transform import Rotation
+
+    out = dict(arrays)
+    for name in SMOOTHED:
+        values = np.asarray(arrays[name], np.float64)
+        if name == "global_orient":
+            q = Rotation.from_rotvec(values).as_quat()
+            turns = np.sign(np.einsum("ti,ti->t", q[1:], q[:-1]) + 1e-12)  # -1 where a frame's sign flipped
+            q *= np.concatenate([[1.0], np.cumprod(turns)])[:, None]
+            q = gaussian_filter1d(q, sigma_frames, axis=0, mode="nearest")
+            out[name] = Rotation.from_quat(q / np.linalg.norm(q, axis=1, keepdims=True)).as_rotvec().astype(np.float32)
+            continue
+        out[name] = gaussian_filter1d(values, sigma_frames, axis=0, mode="nearest").astype(np.float32)
+    return out
+
+
+def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repair=None,
+                   shape_limit_mm: float = np.inf, smoothing_frames: float = 0.0) -> PerFrameResults:
+    """Read OUT/body/, OUT/object/ and the contact stage's labels; clear errors when missing. Without
+    the object (`with_object` False: none in the session, or none to refine) its pose is the identity
+    and trusted in no frame, and no frame is in contact. `repair` (factor, floor_mm, reach) of
+    `departed_frames`: those frames start the joint fit from their neighbours' poses (filled in as gaps
+    are), their data then pulls them back; None: every fit as it is. The body's shape is the sequence mean,
+    unless that moves a frame's body by more than `shape_limit_mm` (`shape_change_mm`): each keeps its own then."""
     body_file = per_frame_result(out_dir, "body", "body_params.npz")
     object_file = per_frame_result(out_dir, "object", "object_poses.npz")
-    for path, stage in ((body_file, "body"), (object_file, "object")):
+    for path, stage in ((body_file, "body"), (object_file, "object"))[:2 if with_object else 1]:
         if not path.exists():
             raise GlobalError(f"{path} is missing: run the `{stage}` stage first "
                               f"(intercap run SESSION --out {out_dir} --stages {stage})")
@@ -76,9 +135,27 @@ def load_per_frame(session, out_dir: Path, model) -> PerFrameResults:
     body_valid = saved["valid"].astype(bool)
     if not body_valid.any():
         raise GlobalError(f"{body_file}: no frame has a body fit; nothing to refine")
-    arrays = {k: fill_gaps(saved[k], body_valid).astype(np.float32) for k in PARAM_FIELDS}
+    T = len(body_valid)
+    repaired = np.zeros(T, bool)
+    if repair is not None and "fit_to_data_mm" in saved:
+        repaired = departed_frames(saved["fit_to_data_mm"], body_valid, *repair)
+        if repaired.all():  # nothing to start them from
+            repaired[:] = False
+    arrays = {k: fill_gaps(saved[k], body_valid & ~repaired).astype(np.float32) for k in PARAM_FIELDS}
+    if smoothing_frames >= 0.5:  # below half a frame the filter would hardly touch the fits
+        arrays = smoothed_start(arrays, smoothing_frames)
+    own = arrays["shape"].copy()
     arrays["shape"][:] = saved["shape_mean"]
     body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
+    moved = shape_change_mm(model, body, own, body_valid)
+    if moved > shape_limit_mm:
+        log.warning("global: the per-frame fits' phenotypes disagree (their mean moves the body by %.0f mm in a "
+                    "frame: the body stage's processes each held their own); each frame keeps its own", moved)
+        body.shape.copy_(torch.as_tensor(own, dtype=body.shape.dtype))
+    if not with_object:
+        return PerFrameResults(body, body_valid, np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3)), np.zeros(T, bool),
+                               np.zeros(T), np.zeros(T, bool), np.full((T, 2), np.inf), np.zeros((T, 2), bool),
+                               repaired)
 
     poses = np.load(object_file)
     object_valid = poses["valid"].astype(bool)
@@ -94,7 +171,7 @@ def load_per_frame(session, out_dir: Path, model) -> PerFrameResults:
     confidence = np.where(object_valid, np.nan_to_num(poses["confidence"]), 0.0)
 
     contact, hand_distance = load_contact_labels(out_dir, session.num_frames)
-    return PerFrameResults(body, body_valid, R, t, object_valid, confidence, contact, hand_distance)
+    return PerFrameResults(body, body_valid, R, t, object_valid, confidence, contact, hand_distance, None, repaired)
 
 
 
@@ -242,7 +319,7 @@ class WindowData:
     obs: BodyObservations
     object_points: torch.Tensor | None  # (W, P, 3) world
     object_point_valid: torch.Tensor | None  # (W, P)
-    object_reference: torch.Tensor  # (W, M, 3) the object's samples where the tracker put them
+    object_reference: torch.Tensor | None  # (W, M, 3) the object's samples where the tracker put them; None: no object
     object_confidence: torch.Tensor  # (W,)
     grasping: torch.Tensor  # (W, 2) float
     flight: torch.Tensor | None = None  # (W,) long: free-flight episode id per frame, -1 outside (GraviCap);
@@ -253,9 +330,10 @@ class WindowData:
 
 class Observations:
     """Loads what a window needs: keypoints and person points as the body stage does, object points
-    from the object masks (given or derived around the tracked pose) with depth."""
+    from the object masks (given or derived around the tracked pose) with depth; with `with_object`
+    False (a body-only joint fit) no object points."""
 
-    def __init__(self, session, cfg, out_dir: Path, cameras: Cameras):
+    def __init__(self, session, cfg, out_dir: Path, cameras: Cameras, with_object: bool = True):
         from intercap.stages.object.fitter import ObjectTracker
 
         self.session, self.cfg = session, cfg
@@ -263,7 +341,7 @@ class Observations:
         self.keypoints = KeypointSource(session, out_dir, cfg.detect.use_session_keypoints, cameras,
                                         cfg.body.keypoint_view_check_px)
         self.person = PersonPoints(session, cameras, cfg.body, out_dir)
-        self.tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
+        self.tracker = ObjectTracker(session, cfg.object, session.object.load_mesh()) if with_object else None
 
     def object_points(self, frame_id: int, R: np.ndarray, t: np.ndarray, trusted: bool, seed: int,
                       depths: list | None = None) -> np.ndarray:
@@ -277,8 +355,8 @@ class Observations:
             points = points[np.random.default_rng([seed, frame_id]).choice(len(points), P, replace=False)]
         return points
 
-    def window(self, frames: np.ndarray, per_frame: PerFrameResults, shape: ObjectShape) -> WindowData:
-        """The observations of take frames `frames` (W,), on the fit's device."""
+    def window(self, frames: np.ndarray, per_frame: PerFrameResults, shape: ObjectShape | None) -> WindowData:
+        """The observations of take frames `frames` (W,), on the fit's device; `shape` None: the body's only."""
         ids = self.session.frame_ids[frames]
         kps = self.keypoints.batch(ids, self.cfg.body.min_keypoint_confidence)
         C, B = self.session.num_cameras, len(frames)
@@ -292,6 +370,8 @@ class Observations:
             i, frame_id = frames[b], int(ids[b])
             depths = [self.session.read_depth(c, frame_id) for c in range(C)]
             points[b], point_valid[b] = self.person.frame(frame_id, kps[b], depths)
+            if shape is None:
+                return
             pts = self.object_points(frame_id, per_frame.R[i], per_frame.t[i], bool(per_frame.object_valid[i]),
                                      self.cfg.global_.seed, depths)
             cloud[b, :len(pts)], cloud_valid[b, :len(pts)] = pts, True
@@ -300,6 +380,9 @@ class Observations:
         device = self.device
         obs = BodyObservations(ids, torch.from_numpy(kps).to(device), torch.from_numpy(points).to(device),
                                torch.from_numpy(point_valid).to(device))
+        if shape is None:
+            none = torch.zeros(B, 2, device=device)
+            return WindowData(obs, None, None, None, torch.zeros(B, device=device), none, grasp_rows=None)
         R = torch.as_tensor(per_frame.R[frames], dtype=torch.float32)
         t = torch.as_tensor(per_frame.t[frames], dtype=torch.float32)
         reference = (shape.samples @ R.transpose(1, 2)) + t[:, None]
@@ -384,3 +467,9 @@ def free_flight(per_frame: PerFrameResults, shape: ObjectShape, ground, fps: flo
         episode_of_frame[a:b + 1] = e
     figures["flight_frames"] = int((episode_of_frame >= 0).sum())
     return {"episodes": episodes, "up": up, "episode_of_frame": episode_of_frame, "figures": figures, "held": held}
+
+
+def no_flight(T: int) -> dict:
+    """`free_flight`'s result for a take without an object: no episodes."""
+    return {"episodes": np.zeros((0, 2), np.int64), "up": np.array([0.0, 0.0, 1.0]),
+            "episode_of_frame": np.full(T, -1, np.int64), "figures": {}, "held": []}

@@ -16,6 +16,9 @@ window of frames (`fitter`), its energy the table of `terms`:
     body's vertices; the learned motion priors of body and hands (E_S, E_L,
     E_R; `intercap.energies.motion_prior`) when weighted (off by default: they
     helped one benchmark session and hurt the other, BENCHMARKS.md).
+A take without an object to refine (none in the session, or none tracked) is fitted the same way with
+the body's terms alone. The fit starts from the per-frame body low-passed in time, and frames whose
+per-frame fit left its depth points from their neighbours' poses (`observations.load_per_frame`).
 Long sequences run in overlapping windows (memory stays bounded; `fitter.windows`).
 The take is cut into chunks of frames (`intercap.stages.chunks`), each fitted
 in a worker process with a window's overlap of context either side and its own
@@ -53,6 +56,7 @@ from intercap.stages.global_fit.observations import (
     free_flight,
     hand_object_distance,
     load_per_frame,
+    no_flight,
     object_inside_body,
 )
 
@@ -62,50 +66,62 @@ OUTPUT_FILES = ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypo
 
 
 def nothing_to_refine(out_dir: Path) -> str | None:
-    """Why the joint fit has nothing to refine (the body fitted in no frame, or the object tracked in
-    none: a person never seen, an object never found), or None. The per-frame results then stand,
-    and the later stages run on them, as for a session without an object."""
-    for stage, name, what in (("body", "body_params.npz", "no frame has a body fit"),
-                              ("object", "object_poses.npz", "the object was tracked in no frame")):
-        path = per_frame_result(out_dir, stage, name)
-        if path.exists():
-            with np.load(path) as saved:
-                if not saved["valid"].any():
-                    return f"{what} ({path})"
-    return None  # missing files: `load_per_frame` says which stage to run
+    """Why the joint fit has nothing to refine (the body fitted in no frame: a person never seen), or
+    None. The per-frame results then stand, and the later stages run on them."""
+    path = per_frame_result(out_dir, "body", "body_params.npz")
+    if path.exists():
+        with np.load(path) as saved:
+            if not saved["valid"].any():
+                return f"no frame has a body fit ({path})"
+    return None  # a missing file: `load_per_frame` says which stage to run
+
+
+def object_left_out(session, out_dir: Path) -> str | None:
+    """Why the joint fit fits the body alone (no object in the session, or none of its tracked poses to
+    refine: an object never found, or found only inside the body), or None when the object takes part."""
+    if session.object is None:
+        return "no object in session"
+    path = per_frame_result(out_dir, "object", "object_poses.npz")
+    if not path.exists():
+        return None  # `load_per_frame` says which stage to run
+    with np.load(path) as poses:
+        valid = poses["valid"].astype(bool)
+    if not valid.any():
+        return f"the object was tracked in no frame ({path})"
+    inside = Path(out_dir) / "global" / "object_inside_body.npy"  # `object_inside_body`'s, written by `run`
+    if inside.exists() and not (valid & ~np.load(inside)).any():
+        return "every tracked object pose lies inside the body"
+    return None
 
 
 def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     """The `global` stage; see the module docstring. The take is fitted in chunks of frames by
     `run.workers` processes (`intercap.parallel`), each chunk with a window's overlap of context
-    either side and its own resumable checkpoint."""
-    if session.object is None:
-        log.info("global: the session has no object; the per-frame body results stand")
-        return {"skipped": "no object in session"}
+    either side and its own resumable checkpoint. Without an object to refine, the body alone is
+    fitted over time (its data, ground, acceleration and motion-prior terms)."""
     out_dir = Path(out_dir)
     reason = nothing_to_refine(out_dir)
-    g = cfg.global_
-    inside = np.zeros(session.num_frames, bool)
-    if reason is None:
-        inside = object_inside_body(session, out_dir, g.object_inside_body_share)
-        (out_dir / "global").mkdir(parents=True, exist_ok=True)
-        np.save(out_dir / "global" / "object_inside_body.npy", inside)
-        if inside.any():
-            log.warning("global: %d tracked object pose(s) lie inside the body (fitted to the person's points):"
-                        " not trusted here", int(inside.sum()))
-        if inside.any():
-            with np.load(per_frame_result(out_dir, "object", "object_poses.npz")) as poses:
-                if not (poses["valid"].astype(bool) & ~inside).any():
-                    reason = "every tracked object pose lies inside the body"
     if reason is not None:
         log.warning("global: skipped: %s; the per-frame results stand", reason)
         return {"skipped": reason}
+    g = cfg.global_
+    inside = np.zeros(session.num_frames, bool)
+    (out_dir / "global").mkdir(parents=True, exist_ok=True)
+    if object_left_out(session, out_dir) is None:
+        inside = object_inside_body(session, out_dir, g.object_inside_body_share)
+        if inside.any():
+            log.warning("global: %d tracked object pose(s) lie inside the body (fitted to the person's points):"
+                        " not trusted here", int(inside.sum()))
+    np.save(out_dir / "global" / "object_inside_body.npy", inside)
+    left_out = object_left_out(session, out_dir)
+    if left_out is not None:
+        log.info("global: %s: the body is fitted over time alone", left_out)
     T = session.num_frames
     chunks = frame_chunks(T, worker_count(cfg), cfg.run.min_frames_per_worker, context=g.window_overlap)
     problem = None
     if len(chunks) == 1:
         problem = GlobalProblem(session, cfg, out_dir)
-    else:  # workers load the session and set up the problem themselves, reading the grid built here
+    elif left_out is None:  # workers load the session and set up the problem themselves, reading the grid built here
         object_shape(session, g, out_dir)
     fit = fit_in_chunks(fit_chunk, stitch, session, cfg, out_dir, chunks, "global", progress, extra=(problem,))
     if problem is None:
@@ -126,7 +142,13 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     out_of_sync = unsynchronised(offsets, g.max_camera_offset_ms)
     if out_of_sync:
         log.warning("global: %s", out_of_sync)
+    repaired = np.flatnonzero(problem.per_frame.repaired)
+    if len(repaired):
+        log.info("global: %d frame(s) whose per-frame fit had left its data started from their neighbours: %s",
+                 len(repaired), session.frame_ids[repaired].tolist())
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
+            "object_left_out": left_out, "frames_repaired": len(repaired),
+            "repaired_frame_ids": session.frame_ids[repaired].tolist(),
             "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio,
             "camera_time_offsets_ms": offsets}
 
@@ -172,6 +194,13 @@ def object_shape(session, g, out_dir: Path) -> ObjectShape:
                        cell_m=g.sdf_cell_m, margin_m=g.sdf_margin_m, cache=out_dir / "global" / "object_sdf.npz")
 
 
+def body_alone_acceleration_weight(weight: float, fps: float) -> float:
+    """The body's acceleration weight in a body-only joint fit: `weight` at 10 fps and more; below, x (fps/10)^2,
+    since a slow take's body moves more between frames, and the same weight would flatten its motion
+    (BENCHMARKS.md, body-only joint fit)."""
+    return weight * min(1.0, fps / 10.0) ** 2
+
+
 class GlobalProblem:
     """What every chunk of the stage needs: the model, the per-frame results, the object's shape,
     the ground, free-flight episodes, the fitter and the observation loader."""
@@ -185,24 +214,30 @@ class GlobalProblem:
         self.model = shared_model(dataclasses.replace(cfg.body_model, name=session.body_model),
                                   device=cfg.run.device)
         self.cameras = Cameras.from_infos(session.cameras, device=cfg.run.device)
-        self.per_frame = load_per_frame(session, out_dir, self.model)
+        with_object = object_left_out(session, out_dir) is None
+        repair = (g.repair_factor, g.repair_floor_mm, g.repair_reach) if g.repair_factor > 0 else None
+        self.per_frame = per_frame = load_per_frame(session, out_dir, self.model, with_object, repair,
+                                                    g.shape_change_limit_mm, g.start_smoothing_s * session.fps)
         ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
         if ground is None:
             log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
-        self.shape = object_shape(session, g, out_dir)
-        per_frame = self.per_frame
-        if per_frame.hand_distance is None:
-            per_frame.hand_distance = hand_object_distance(self.model, per_frame, self.shape)
-        per_frame.grasping = per_frame.contact[:, None] & (per_frame.hand_distance < g.hand_reach_m)
-        self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, g, self.shape, ground, session.fps)
-        self.flight = flight = free_flight(per_frame, self.shape, ground, session.fps, g)
+        self.shape = object_shape(session, g, out_dir) if with_object else None
+        if with_object:
+            if per_frame.hand_distance is None:
+                per_frame.hand_distance = hand_object_distance(self.model, per_frame, self.shape)
+            per_frame.grasping = per_frame.contact[:, None] & (per_frame.hand_distance < g.hand_reach_m)
+        weights = g if with_object else dataclasses.replace(g, w_body_acceleration=body_alone_acceleration_weight(
+            g.w_body_acceleration_alone, session.fps))
+        self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, weights, self.shape, ground, session.fps)
+        self.flight = flight = (free_flight(per_frame, self.shape, ground, session.fps, g) if with_object
+                                else no_flight(session.num_frames))
         if flight["episodes"].size and g.w_flight > 0:
             self.fitter.gravity = torch.as_tensor(-9.81 * flight["up"], dtype=torch.float32, device=cfg.run.device)
-        if flight["figures"]["gravity_source"] == "flight":  # no floor in view: up from the object's free flight
+        if flight["figures"].get("gravity_source") == "flight":  # no floor in view: up from the object's free flight
             write_json(stage_dir / "gravity.json", {"up": flight["figures"]["gravity_up"], "source": "flight",
                                                     "gravity_mps2": (-9.81 * flight["up"]).tolist(),
                                                     "episodes": flight["figures"]["flight_episodes"]})
-        self.observations = Observations(session, cfg, out_dir, self.cameras)
+        self.observations = Observations(session, cfg, out_dir, self.cameras, with_object)
 
 
 def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk: Chunk, queue) -> dict:
@@ -222,7 +257,9 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
     fitted = per_frame.body.clone()
     device = problem.model.faces.device  # the windows are fitted there
     R_all = torch.as_tensor(per_frame.R, dtype=torch.float32, device=device)
-    centre_all = torch.as_tensor(per_frame.t, dtype=torch.float32, device=device) + R_all @ shape.centroid.to(R_all)
+    centre_all = torch.as_tensor(per_frame.t, dtype=torch.float32, device=device)
+    if shape is not None:
+        centre_all = centre_all + R_all @ shape.centroid.to(R_all)
     checkpoint = Checkpoint.of_chunk(out_dir, "global", chunk)
     next_window, seconds, history = 0, 0.0, []
     saved = checkpoint.load()
@@ -259,21 +296,23 @@ def fit_chunk(session, cfg, out_dir: Path, problem: GlobalProblem | None, chunk:
             "centre": centre_all[rows].cpu().numpy(), "history": history, "seconds": seconds}
 
 
-def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectShape, per_frame: PerFrameResults,
-                  seconds: float, history: list, out_dir: Path, observations: Observations, cameras, cfg,
-                  weight) -> dict:
-    """OUT/global/ files, shown at OUT/; frames the per-frame stages could not fit are NaN."""
+def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectShape | None,
+                  per_frame: PerFrameResults, seconds: float, history: list, out_dir: Path,
+                  observations: Observations, cameras, cfg, weight) -> dict:
+    """OUT/global/ files, shown at OUT/; frames the per-frame stages could not fit are NaN. A body-only
+    fit (`shape` None) writes no object poses: the object stage's, if any, stay shown."""
     T = session.num_frames
     stage_dir = out_dir / "global"
     valid = per_frame.body_valid
     vertices, keypoints = save_body_results(stage_dir, model, fitted, valid, session.frame_ids)
     ok = per_frame.object_valid
     R_out = np.where(ok[:, None, None], R.numpy(), np.nan).astype(np.float32)
-    t_world = centre - (R @ shape.centroid)
-    t_out = np.where(ok[:, None], t_world.numpy(), np.nan).astype(np.float32)
-    save_npz(stage_dir / "object_poses.npz", R=R_out, t=t_out, valid=ok, confidence=per_frame.object_confidence,
-             frame_ids=session.frame_ids)
-    for name in OUTPUT_FILES:
+    t_out = np.full((T, 3), np.nan, np.float32)
+    if shape is not None:
+        t_out = np.where(ok[:, None], (centre - (R @ shape.centroid)).numpy(), np.nan).astype(np.float32)
+        save_npz(stage_dir / "object_poses.npz", R=R_out, t=t_out, valid=ok, confidence=per_frame.object_confidence,
+                 frame_ids=session.frame_ids)
+    for name in OUTPUT_FILES if shape is not None else OUTPUT_FILES[:-1]:
         publish(stage_dir / name, out_dir / name)
 
     for i in range(0, T, max(1, cfg.body.overlay_every)):
@@ -305,12 +344,12 @@ def in_parts(frames: np.ndarray) -> list[np.ndarray]:
     return np.array_split(frames, -(-len(frames) // FIGURE_FRAMES))
 
 
-def quality_figures(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, shape: ObjectShape,
+def quality_figures(vertices: np.ndarray, R: np.ndarray, t: np.ndarray, shape: ObjectShape | None,
                     per_frame: PerFrameResults, fps: float) -> dict:
     """The stage's own checks (no ground truth): penetration on contact frames, jitter. Computed
     `FIGURE_FRAMES` frames at a time: over a whole long take at once, their temporaries would take
     gigabytes."""
-    both = per_frame.body_valid & per_frame.object_valid & per_frame.contact
+    both = per_frame.body_valid & per_frame.object_valid & per_frame.contact & (shape is not None)
     figures = {"contact_frames": int(per_frame.contact.sum())}
     if both.any():
         depth = []  # (n,) deepest body vertex inside the object per frame, FIGURE_FRAMES frames at a time

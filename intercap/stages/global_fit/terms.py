@@ -40,7 +40,7 @@ class GlobalEvaluation:
     data: WindowData
     vertices: torch.Tensor  # (W, U, 3) the window's vertices
     body: dict  # E_B: the body stage's final terms, unweighted, (W,) each
-    object_world: torch.Tensor  # (W, M, 3) the object's surface samples
+    object_world: torch.Tensor | None  # (W, M, 3) the object's surface samples; None in a body-only fit
 
     @classmethod
     def of(cls, fitter, params, R: torch.Tensor, centre: torch.Tensor, data: WindowData, matches,
@@ -52,8 +52,13 @@ class GlobalEvaluation:
         subset_out = BodyOutput(vertices=vertices, joints=out.joints, keypoints=out.keypoints)
         body = fitter.body.energy_terms(params, data.obs, FINAL_TERMS, matches, fitter.bcfg.keypoint_rho,
                                         out=subset_out)
-        object_world = fitter.from_object(fitter.shape.samples, R, centre)
+        object_world = None if fitter.shape is None else fitter.from_object(fitter.shape.samples, R, centre)
         return cls(fitter, params, R, centre, data, vertices, body, object_world)
+
+    @property
+    def has_object(self) -> bool:
+        """Whether the window has an object (a body-only joint fit has none: its terms do not apply)."""
+        return self.object_world is not None
 
     @property
     def g(self) -> GlobalConfig:
@@ -129,23 +134,31 @@ def object_points(ev: GlobalEvaluation) -> torch.Tensor | None:
     return losses.object_point_to_surface(sd, data.object_point_valid, ev.g.object_depth_scale_m)
 
 
-def object_anchor(ev: GlobalEvaluation) -> torch.Tensor:
+def object_anchor(ev: GlobalEvaluation) -> torch.Tensor | None:
     """The object's surface samples to where the tracker put them, x its confidence."""
+    if not ev.has_object:
+        return None
     return losses.pose_anchor(ev.object_world, ev.data.object_reference, ev.data.object_confidence)
 
 
-def interpenetration(ev: GlobalEvaluation) -> torch.Tensor:
+def interpenetration(ev: GlobalEvaluation) -> torch.Tensor | None:
     """E_P: body vertices inside the object."""
+    if not ev.has_object:
+        return None
     return losses.body_object_interpenetration(ev.body_in_object)
 
 
-def contact(ev: GlobalEvaluation) -> torch.Tensor:
+def contact(ev: GlobalEvaluation) -> torch.Tensor | None:
     """E_C: each touching hand's nearest palm patch onto the object's surface, in contact frames."""
+    if not ev.has_object:
+        return None
     return ev.hands_on_object[0]
 
 
-def hand_contact(ev: GlobalEvaluation) -> torch.Tensor:
+def hand_contact(ev: GlobalEvaluation) -> torch.Tensor | None:
     """E_C': a grasping palm onto the object's graspable points."""
+    if not ev.has_object:
+        return None
     return ev.hands_on_object[1]
 
 
@@ -154,8 +167,8 @@ def ground(ev: GlobalEvaluation) -> torch.Tensor | None:
     if ev.floor is None:
         return None
     point, normal = ev.floor
-    return losses.ground_penetration(ev.vertices, point, normal) + losses.ground_penetration(ev.object_world, point,
-                                                                                             normal)
+    below = losses.ground_penetration(ev.vertices, point, normal)
+    return below + losses.ground_penetration(ev.object_world, point, normal) if ev.has_object else below
 
 
 def body_ground_support(ev: GlobalEvaluation) -> torch.Tensor | None:
@@ -177,7 +190,9 @@ def flight(ev: GlobalEvaluation) -> torch.Tensor | None:
 
 def object_acceleration(ev: GlobalEvaluation) -> torch.Tensor | None:
     """E_A: the acceleration of the object's surface samples."""
-    return losses.vertex_acceleration(ev.object_world, ev.fitter.fps) if len(ev.vertices) >= 3 else None
+    if not ev.has_object or len(ev.vertices) < 3:
+        return None
+    return losses.vertex_acceleration(ev.object_world, ev.fitter.fps)
 
 
 def body_acceleration(ev: GlobalEvaluation) -> torch.Tensor | None:

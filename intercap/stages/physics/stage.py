@@ -13,7 +13,7 @@ composes intercap.dynamics:
    bounded least squares per frame; then joint torques per bone with the solved contacts;
 5. free flight (dynamics.flight): episodes where the object touches nothing, parabola fits.
 
-Writes OUT/physics/physics.npz (keys of SESSION_FORMAT.md, SI units, world frame; extra keys:
+Writes OUT/physics/physics.npz (keys of docs/outputs.md, SI units, world frame; extra keys:
 hand_point (T, 2, 3) m where the hand wrench acts and about which hand_torque is taken,
 object_residual_torque (T, 3), foot_contact (T, 2, P) bool, foot_points (T, 2, P, 3), hand_contact
 (T, 2) bool, mu, body_mass_source, object_mass_source, and the per-frame plausibility inputs of

@@ -2,9 +2,8 @@
 calibration.json) and the check that aligns neighbouring cameras' point clouds."""
 from pathlib import Path
 
-from intercap.calib.alignment import PairAgreement, check_calibration, format_agreement, neighbour_pairs
-
 RIGS_DIR = Path(__file__).resolve().parent / "rigs"
+_ALIGNMENT = ("PairAgreement", "check_calibration", "format_agreement", "neighbour_pairs")
 
 
 def rig_path(name: str) -> Path:
@@ -16,4 +15,14 @@ def rig_path(name: str) -> Path:
     return path
 
 
-__all__ = ["PairAgreement", "check_calibration", "format_agreement", "neighbour_pairs", "rig_path", "RIGS_DIR"]
+def __getattr__(name):
+    # Lazy: importing a submodule (the light `options` of `intercap calibrate --help`) runs this
+    # file, and the alignment check imports open3d.
+    if name in _ALIGNMENT:
+        from intercap.calib import alignment
+
+        return getattr(alignment, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = [*_ALIGNMENT, "rig_path", "RIGS_DIR"]

@@ -40,6 +40,7 @@ from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from intercap.calib.alignment import check_calibration, neighbour_pairs, rotation_angle_deg
+from intercap.calib.options import add_calibrate_arguments  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
 IMAGE_EXTS = (".png", ".jpg", ".jpeg")
@@ -491,29 +492,32 @@ __all__ = ["Board", "CalibrationError", "RigCalibration", "calibrate_rig", "cali
 
 
 # ----------------------------------------------------------------------------- command line
-def add_calibrate_arguments(p) -> None:
-    """`intercap calibrate`'s options."""
-    p.add_argument("session", metavar="SESSION_DIR", help="recording: calibration.json (intrinsics) and <camera>/color, depth")
-    p.add_argument("--board", choices=["charuco", "checkerboard"], default="charuco")
-    p.add_argument("--squares", default="7x5", help="squares across x down, e.g. 7x5 (default)")
-    p.add_argument("--square-m", type=float, default=0.04, help="square side in metres (default 0.04)")
-    p.add_argument("--marker-m", type=float, default=0.03, help="ChArUco marker side in metres (default 0.03)")
-    p.add_argument("--dictionary", default="DICT_5X5_100", help="ChArUco ArUco dictionary (default DICT_5X5_100)")
-    p.add_argument("--world", choices=["camera", "board"], default="camera",
-                   help="world frame: the first camera (default) or the board's first shared pose")
-    p.add_argument("--no-depth-refine", action="store_true", help="report the depth agreement but keep the board poses")
-    p.add_argument("--out", help="calibration.json to write (default: SESSION_DIR/calibration.json)")
+def board_from_args(args) -> Board:
+    """The `Board` of the command line's board options (`intercap.calib.options.add_board_arguments`)."""
+    try:
+        cols, rows = (int(v) for v in str(args.squares).lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--squares must look like 7x5, got {args.squares!r}") from None
+    return Board(args.board, (cols, rows), args.square_m, args.marker_m, args.dictionary)
+
+
+def board_command(args) -> int:
+    """Run `intercap board`: write the board to print at its true size, say its size."""
+    from intercap.calib.print_board import write_board
+
+    written = write_board(board_from_args(args), args.out, args.dpi, args.margin_m)
+    width, height = written["size_mm"]
+    print(f"written {written['path']}: {width:.1f} x {height:.1f} mm, squares of {written['square_mm']:.2f} mm "
+          f"({written['pixels'][0]} x {written['pixels'][1]} dots at {args.dpi:g} dpi); print at 100 %, then measure "
+          "a square and a marker for `intercap calibrate`")
+    return 0
 
 
 def calibrate_command(args) -> int:
     """Run `intercap calibrate`: print the per-camera table, write calibration.json atomically."""
     from intercap.io.files import write_json
 
-    try:
-        cols, rows = (int(v) for v in str(args.squares).lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--squares must look like 7x5, got {args.squares!r}") from None
-    board = Board(args.board, (cols, rows), args.square_m, args.marker_m, args.dictionary)
+    board = board_from_args(args)
     result, _, calib = calibrate_rig(args.session, board, world=args.world, depth_refine=not args.no_depth_refine)
     print(format_result(result))
     out = Path(args.out) if args.out else Path(args.session) / "calibration.json"

@@ -240,6 +240,12 @@ def add_import_parsers(sub) -> argparse._SubParsersAction:
     return isub
 
 
+def _cmd_board(args) -> int:
+    from intercap.calib.board import board_command
+
+    return board_command(args)
+
+
 def _cmd_calibrate(args) -> int:
     from intercap.calib.board import calibrate_command
 
@@ -259,9 +265,10 @@ def logging_options(quiet: bool = True) -> argparse.ArgumentParser:
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:
-    """The command line; the options of `synth` and `calibrate` need heavy imports (the generator's
-    torch and trimesh, calibration's open3d), so they are added only when that command is about to
-    run (`intercap --help` lists the commands without them)."""
+    """The command line; the options of `synth`, `calibrate` and `board` are added only when that command is
+    about to run (`intercap --help` lists the commands without them). They come from light modules
+    (`intercap.synth.options`, `intercap.calib.options`): the generator imports torch and trimesh,
+    calibration cv2 and open3d, which only the command itself needs."""
     from intercap import __version__
 
     parser = argparse.ArgumentParser(prog="intercap", description="Multi-view RGB-D human-object capture.")
@@ -325,17 +332,24 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
 
     p = sub.add_parser("synth", parents=[logging_options(quiet=False)], help="write a synthetic session with ground truth")
     if command == "synth":
-        from intercap.synth.generator import build_arg_parser
+        from intercap.synth.options import build_arg_parser
 
         build_arg_parser(p)  # adds OUT and the generator's options
     p.set_defaults(func=_cmd_synth)
 
     p = sub.add_parser("calibrate", parents=common, help="rig extrinsics from a recording of a ChArUco or checkerboard board")
     if command == "calibrate":
-        from intercap.calib.board import add_calibrate_arguments
+        from intercap.calib.options import add_calibrate_arguments
 
         add_calibrate_arguments(p)
     p.set_defaults(func=_cmd_calibrate)
+
+    p = sub.add_parser("board", parents=common, help="write the calibration board to print at its true size (PDF or PNG)")
+    if command == "board":
+        from intercap.calib.options import add_print_arguments
+
+        add_print_arguments(p)
+    p.set_defaults(func=_cmd_board)
     return parser
 
 

@@ -13,7 +13,8 @@ load the session and the model themselves, and report finished frames through
 a queue so the parent shows one progress bar. The worker processes outlive a
 stage: the next stage of the run finds torch, the libraries and the body model
 already loaded there (starting a worker cost ~5 s of imports, per stage), and
-`run_pipeline` shuts them down at its end (`shutdown`).
+`run_pipeline` shuts them down at its end (`shutdown`). Their warnings go to their stderr and,
+with their INFO lines, to the run's OUT/run.log (`logging_to`).
 """
 from __future__ import annotations
 
@@ -46,12 +47,44 @@ def worker_count(cfg) -> int:
     return max(1, cfg.run.workers or cpu_count())
 
 
-def _init_worker(threads: int, deterministic: bool) -> None:
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"  # OUT/run.log's lines
+_run_log: dict = {"path": None}
+
+
+@contextmanager
+def logging_to(path):
+    """Worker processes started while the block runs also write their log records (INFO and up) to
+    `path` (OUT/run.log: `pipeline.run_log`), appending, as the parent does; their warnings still
+    reach their stderr."""
+    before, _run_log["path"] = _run_log["path"], os.path.abspath(path)
+    try:
+        yield
+    finally:
+        _run_log["path"] = before
+
+
+def _init_worker(threads: int, deterministic: bool, log_path: str | None = None) -> None:
     import torch
 
     torch.set_num_threads(threads)
     torch.use_deterministic_algorithms(deterministic)
+    init_worker_logging(log_path)
+
+
+def init_worker_logging(log_path: str | None) -> None:
+    """A worker's logging: WARNING and up on stderr and, with `log_path`, INFO and up appended to
+    that file (one write per line, so the lines of several processes do not mix)."""
     logging.basicConfig(level=logging.WARNING)
+    if log_path is None:
+        return
+    root = logging.getLogger()
+    for handler in root.handlers:
+        handler.setLevel(max(handler.level, logging.WARNING))
+    to_file = logging.FileHandler(log_path, mode="a", encoding="utf-8")
+    to_file.setLevel(logging.INFO)
+    to_file.setFormatter(logging.Formatter(LOG_FORMAT))
+    root.addHandler(to_file)
+    root.setLevel(logging.INFO)
 
 
 @contextmanager
@@ -76,11 +109,11 @@ _pool: dict = {"executor": None, "key": None}
 
 def worker_pool(workers: int, threads: int) -> ProcessPoolExecutor:
     """The run's worker processes (`workers`, `threads` torch threads each, deterministic algorithms as
-    in this process: `repeatable`), started on first use and kept for the next stage; started anew
-    when these change or a worker died."""
+    in this process: `repeatable`, logging to the run's log: `logging_to`), started on first use and
+    kept for the next stage; started anew when these change or a worker died."""
     import torch
 
-    key = (workers, threads, torch.are_deterministic_algorithms_enabled())
+    key = (workers, threads, torch.are_deterministic_algorithms_enabled(), _run_log["path"])
     executor = _pool["executor"]
     if executor is not None and (_pool["key"] != key or getattr(executor, "_broken", False)):
         shutdown()

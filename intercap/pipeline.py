@@ -304,10 +304,11 @@ RUN_LOG = "run.log"  # OUT/run.log: INFO and above of every run into the folder,
 
 @contextmanager
 def run_log(path: Path):
-    """Copy this process's log records (INFO and above, timestamped) into `path` while the block runs."""
+    """Copy this process's log records (INFO and above, timestamped) into `path` while the block runs,
+    and those of the stages' worker processes (`parallel.logging_to`)."""
     handler = logging.FileHandler(path, mode="a", encoding="utf-8")
     handler.setLevel(logging.INFO)
-    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.setFormatter(logging.Formatter(parallel.LOG_FORMAT))
     root = logging.getLogger()
     level, shown = root.level, root.getEffectiveLevel()
     held = [(h, h.level) for h in root.handlers if h.level < shown]  # the console keeps what it showed
@@ -317,7 +318,8 @@ def run_log(path: Path):
         root.setLevel(logging.INFO)
     root.addHandler(handler)
     try:
-        yield
+        with parallel.logging_to(path):
+            yield
     finally:
         root.removeHandler(handler)
         root.setLevel(level)

@@ -68,6 +68,35 @@ def test_help_does_not_import_torch_or_open3d():
     assert out.stdout.strip() == "[]"
 
 
+@pytest.mark.parametrize("command, option", [("synth", "--preset"), ("calibrate", "--square-m")])
+def test_synth_and_calibrate_help_do_not_import_the_heavy_libraries(command, option):
+    """Their options come from light modules: the help lists them (and exits 0) with none of torch,
+    open3d, trimesh or cv2 imported; the generator and the calibration import them when they run."""
+    code = ("import sys, contextlib, io\n"
+            "from intercap.cli import main\n"
+            "text = io.StringIO()\n"
+            "with contextlib.redirect_stdout(text):\n"
+            "    try:\n"
+            f"        main([{command!r}, '--help'])\n"
+            "    except SystemExit as exc:\n"
+            "        assert exc.code == 0, exc.code\n"
+            f"assert {option!r} in text.getvalue(), text.getvalue()\n"
+            "print(sorted(m for m in ('torch', 'open3d', 'trimesh', 'cv2') if m in sys.modules))\n")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_python_m_synth_help_does_not_import_torch():
+    out = subprocess.run([sys.executable, "-X", "importtime", "-m", "intercap.synth", "--help"], cwd=ROOT,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert "--preset" in out.stdout
+    imported = {line.rsplit("|", 1)[-1].strip() for line in out.stderr.splitlines() if line.startswith("import time:")}
+    assert "intercap.synth.options" in imported
+    assert not imported & {"torch", "open3d", "trimesh", "cv2"}
+
+
 def test_quiet_run_logs_to_run_log_without_progress_bars(tmp_path):
     """-q after the subcommand: nothing but warnings on stderr, no carriage returns (stderr is a pipe);
     OUT/run.log gets the INFO lines with timestamps, appended by the resumed run."""

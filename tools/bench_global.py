@@ -41,6 +41,8 @@ SESSIONS = {
     "bend4_alone": ("bend", "none", None, (0.7, 0.4, 0.6, 0.5, 0.4, 0.5), 4),
     "bend1_alone": ("bend", "none", None, (0.7, 0.4, 0.6, 0.5, 0.4, 0.5), 1),
     "sit4_alone": ("sit_stand", "none", None, (0.2, 0.5, 0.4, 0.6, 0.5, 0.5), 4),
+    "walk4_alone": ("walk_out", "none", None, (0.6, 0.5, 0.5, 0.5, 0.5, 0.5), 4),
+    "walk1_alone": ("walk_out", "none", None, (0.6, 0.5, 0.5, 0.5, 0.5, 0.5), 1),
 }
 FPS = 10.0  # the default frame rate (--fps)
 PER_FRAME_FILES = {"body": ("body_params.npz", "body_vertices.npy", "body_faces.npy", "keypoints3d.npy"),

@@ -38,9 +38,8 @@ import trimesh
 from scipy.spatial.transform import Rotation, Slerp
 
 from intercap.synth.objects import NO_OBJECT, ObjectSpec, SdfGrid, SurfaceDistance, make_object
+from intercap.synth.options import SCRIPT_NAMES
 
-SCRIPT_NAMES = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop", "turn", "table_lift", "bend",
-                "sit_stand", "walk_out")
 PHYSICS_SCRIPTS = ("toss", "hold", "drop")  # scripts with analytic physics (ground_truth/physics.npz)
 GRAVITY = 9.81  # m/s^2 along the generator's up (+z)
 TABLE_TOP = 0.74  # height of the "table" prop's top above the floor, metres

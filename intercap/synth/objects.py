@@ -13,8 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
-OBJECT_NAMES = ("box", "cup", "chair", "block", "board", "carton", "flat_box", "tool", "ball")
-NO_OBJECT = "none"  # the object "name" of a take of the person alone (no object anywhere)
+from intercap.synth.options import NO_OBJECT, OBJECT_NAMES  # noqa: F401 - re-exported
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import logging
+import multiprocessing
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -149,8 +150,9 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
     body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
     moved = shape_change_mm(model, body, own, body_valid)
     if moved > shape_limit_mm:
-        log.warning("global: the per-frame fits' phenotypes disagree (their mean moves the body by %.0f mm in a "
-                    "frame: the body stage's processes each held their own); each frame keeps its own", moved)
+        said = log.warning if multiprocessing.parent_process() is None else log.debug  # once, not per worker
+        said("global: the per-frame fits' phenotypes disagree (their mean moves the body by %.0f mm in a "
+             "frame: the body stage's processes each held their own); each frame keeps its own", moved)
         body.shape.copy_(torch.as_tensor(own, dtype=body.shape.dtype))
     if not with_object:
         return PerFrameResults(body, body_valid, np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3)), np.zeros(T, bool),

@@ -148,7 +148,7 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
     own = arrays["shape"].copy()
     arrays["shape"][:] = saved["shape_mean"]
     body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
-    moved = shape_change_mm(model, body, own, body_valid)
+    moved = shape_change_mm(model, body, own, body_valid) if np.isfinite(shape_limit_mm) else 0.0
     if moved > shape_limit_mm:
         said = log.warning if multiprocessing.parent_process() is None else log.debug  # once, not per worker
         said("global: the per-frame fits' phenotypes disagree (their mean moves the body by %.0f mm in a "

@@ -312,8 +312,9 @@ def write_outputs(session, model, fitted: BodyParams, R, centre, shape: ObjectSh
         t_out = np.where(ok[:, None], (centre - (R @ shape.centroid)).numpy(), np.nan).astype(np.float32)
         save_npz(stage_dir / "object_poses.npz", R=R_out, t=t_out, valid=ok, confidence=per_frame.object_confidence,
                  frame_ids=session.frame_ids)
-    for name in OUTPUT_FILES if shape is not None else OUTPUT_FILES[:-1]:
-        publish(stage_dir / name, out_dir / name)
+    for name in OUTPUT_FILES:
+        if shape is not None or name != "object_poses.npz":
+            publish(stage_dir / name, out_dir / name)
 
     for i in range(0, T, max(1, cfg.body.overlay_every)):
         fid = int(session.frame_ids[i])

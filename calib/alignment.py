@@ -83,6 +83,7 @@ class PairAgreement:
     flagged: bool = False
     blocks: int = 0
     judged: bool = False
+    agreement_gain_pct: float = float("nan")
 
 
 def neighbour_pairs(camera_centers) -> list[tuple[int, int]]:
@@ -194,13 +195,22 @@ def describe_directions(V: np.ndarray) -> list[str]:
 
 
 def voxel_average(points: np.ndarray, voxel_size: float) -> np.ndarray:
-    """(N, 3) finite points -> one averaged point per occupied voxel (less noise, even density)."""
+    """(N, 3) finite points -> one averaged point per occupied voxel (less noise, even density).
+
+    The voxels are cells of one grid fixed in the world (corners at multiples of voxel_size), the
+    same for every view: depth noise thicker than a voxel splits a surface into layers of averages,
+    and on two grids offset from each other (a grid from each cloud's own bounds) the two views'
+    layers lie at different heights, which at high resolution reads as an offset of several mm."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     pts = pts[np.isfinite(pts).all(axis=1)]
     if voxel_size <= 0 or len(pts) == 0:
         return pts
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
-    return np.asarray(cloud.voxel_down_sample(float(voxel_size)).points)
+    cells = np.floor(pts / voxel_size).astype(np.int64)
+    _, cell_of_point, counts = np.unique(cells, axis=0, return_inverse=True, return_counts=True)
+    cell_of_point = cell_of_point.reshape(-1)
+    sums = np.zeros((len(counts), 3))
+    np.add.at(sums, cell_of_point, pts)
+    return sums / counts[:, None]
 
 
 # A point on the edge of what its view covers: its neighbours' centroid lies off it by this share of their spread.
@@ -284,7 +294,7 @@ def _view_frame(points: np.ndarray, voxel_size: float, plane_radius: float, name
 
 
 def _correspondences(src: list[_ViewFrame], tgt: list[_ViewFrame], T: np.ndarray, max_distance: float,
-                     min_normal_cos: float = MIN_NORMAL_COS, within_coverage: bool = True):
+                     min_normal_cos: float = MIN_NORMAL_COS, keep_edges: bool = False):
     """Point-to-plane correspondences of the moved source points with the target planes, frame by
     frame (a moving person only matches itself in the same instant): moved points (K, 3),
     normals (K, 3), signed residuals (K,), frame index (K,), expected residual sigma (K,).
@@ -296,7 +306,7 @@ def _correspondences(src: list[_ViewFrame], tgt: list[_ViewFrame], T: np.ndarray
     (beyond an image border, in an occlusion's shadow: one view sees floor the other does not):
     its offset from the last plane the target saw is no residual, and all such offsets lean the
     same way (outward), which on an exact rig reads as a shift of several millimetres; those are left
-    out `within_coverage` (the check; the refinement keeps them)."""
+    out unless `keep_edges` (one of the refinement's two solves, `refine_rig`)."""
     qs, ns, rs, fs, ss = [], [], [], [], []
     for f, (s, t) in enumerate(zip(src, tgt)):
         if t.tree is None or len(s.points) == 0:
@@ -305,7 +315,7 @@ def _correspondences(src: list[_ViewFrame], tgt: list[_ViewFrame], T: np.ndarray
         d, i = t.tree.query(q, k=1, distance_upper_bound=max_distance)
         hit = np.isfinite(d)
         hit[hit] = (s.point_normals[hit] @ T[:3, :3].T * t.normals[i[hit]]).sum(axis=1) >= min_normal_cos
-        if within_coverage:
+        if not keep_edges:
             hit[hit] = ~t.plane_edge[i[hit]]
             offset = q[hit] - t.planes[i[hit]]
             along_normal = (offset * t.normals[i[hit]]).sum(axis=1)
@@ -323,6 +333,26 @@ def _correspondences(src: list[_ViewFrame], tgt: list[_ViewFrame], T: np.ndarray
 def noise_weights(residual: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """(N,) IRLS weights: Huber on the residuals in units of their expected noise, times 1/sigma^2."""
     return huber_weights(residual / sigma) / sigma**2
+
+
+def capped_cost(residual: np.ndarray, sigma: np.ndarray, cap: float = 3.0) -> float:
+    """Mean over matches of (residual / sigma)^2, each capped at cap^2: how well two views agree,
+    in units of their expected noise, without letting a few far matches decide."""
+    return float(np.minimum((residual / sigma) ** 2, cap * cap).mean()) if len(residual) else float("nan")
+
+
+def agreement_gain(before: tuple, after: tuple, x: np.ndarray, centre: np.ndarray, radius: float,
+                   min_sensitivity: float = 0.3) -> float:
+    """How much a correction x (scaled twist, 6) makes two views agree better: the fall of the
+    `capped_cost` of the matches it moves (|J x / |x|| above min_sensitivity: a floor does not move
+    under a slide along it), from the matches `before` (at the calibrated pose) to those `after`
+    (under the correction), as a share of the former. Each is (q, n, r, frames, sigma)."""
+    unit = x / max(float(np.linalg.norm(x)), 1e-12)
+    costs = []
+    for q, n, r, _, sg in (before, after):
+        moved = np.abs(np.hstack([np.cross(q - centre, n) / radius, n]) @ unit) > min_sensitivity
+        costs.append(capped_cost(r[moved], sg[moved]) if moved.any() else float("nan"))
+    return (costs[0] - costs[1]) / costs[0] if np.isfinite(costs).all() and costs[0] > 0 else 0.0
 
 
 def huber_weights(residual: np.ndarray) -> np.ndarray:
@@ -440,6 +470,7 @@ def pair_agreement(
     iterations: int = 15,
     bias_fraction: float = 0.0,
     min_blocks: int = 100,
+    min_agreement_gain: float = 0.1,
 ) -> PairAgreement:
     """Agreement of view a's points (one (N, 3) array per frame) with view b's planes (same frames).
 
@@ -454,7 +485,12 @@ def pair_agreement(
     only when the overlap spans at least min_blocks clusters: a view that shares a few patches of
     the person with its neighbour (a camera close in, the floor out of its image) gives a sandwich
     over too few clusters and the person's systematic depth errors (grazing sides), which pass
-    4 sigma on an exact rig (tests/calib: 23-36 clusters against ~1000 with the floor)."""
+    4 sigma on an exact rig (tests/calib: 23-36 clusters against ~1000 with the floor). And only when
+    the correction makes the views agree better where it moves them (`agreement_gain` at least
+    min_agreement_gain): where only a few surfaces hold a direction (a person seen by cameras 45 degrees
+    apart holds the turn about the vertical), their systematic depth errors walk ICP along it by a
+    degree or more at many sigma, yet the views agree no better there (-10 % on that exact rig, 18-78 %
+    on bumped ones, 71 % for a camera shifted 5 cm sideways: tools/bench_calibration_check)."""
     nan = float("nan")
     empty = PairAgreement(cam_a, cam_b, 0, nan, nan, nan, nan, 0.0)
     q, n, r, fr, sg = _correspondences(source, target, np.eye(4), max_distance)
@@ -468,6 +504,7 @@ def pair_agreement(
     H0, _ = point_to_plane_system(q, n, r, noise_weights(r, sg), centre, radius)
     keep, drop = observable_basis(H0, min_constraint)
     median_before = float(np.median(np.abs(r)) * 1000)
+    matches_before = (q, n, r, fr, sg)
     # a floor for what the sandwich cannot see: on noisy depth the first step itself is biased by
     # a fraction of the residuals' spread (nearest neighbours within thick slabs of noise)
     floor = bias_fraction * 1.4826 * float(np.median(np.abs(r - np.median(r))))
@@ -493,8 +530,9 @@ def pair_agreement(
     sigma_mm = math.hypot(_sigma_along(cov6[3:, 3:], x6[3:]), floor) * 1000
     sigma_deg = math.degrees(math.hypot(_sigma_along(cov6[:3, :3], x6[:3]), floor) / radius)
     judged = blocks >= min_blocks
-    flagged = judged and bool((mm > min_mm and mm > k_sigma * sigma_mm)
-                              or (deg > min_deg and deg > k_sigma * sigma_deg))
+    gain = agreement_gain(matches_before, (q, n, r, fr, sg), x6, centre, radius)
+    flagged = judged and gain >= min_agreement_gain and bool((mm > min_mm and mm > k_sigma * sigma_mm)
+                                                             or (deg > min_deg and deg > k_sigma * sigma_deg))
     return PairAgreement(
         cam_a=cam_a, cam_b=cam_b, overlap_points=n_overlap, median_distance_mm=median_before,
         icp_rmse_mm=float(np.sqrt(np.mean(r**2)) * 1000), correction_rotation_deg=deg, correction_translation_mm=mm,
@@ -502,7 +540,7 @@ def pair_agreement(
         observable_translation_mm=mm, full_rotation_deg=float(np.degrees(np.linalg.norm(x_full[:3]) / radius)),
         full_translation_mm=float(np.linalg.norm(x_full[3:]) * 1000), unobservable=describe_directions(drop),
         translation_sigma_mm=sigma_mm, rotation_sigma_deg=sigma_deg, observable_dof=int(keep.shape[1]),
-        significance=significance, flagged=flagged, blocks=blocks, judged=judged,
+        significance=significance, flagged=flagged, blocks=blocks, judged=judged, agreement_gain_pct=100 * gain,
     )
 
 
@@ -521,6 +559,7 @@ def check_calibration(
     plane_radius: float = 0.0,
     iterations: int = 15,
     min_blocks: int = 100,
+    min_agreement_gain: float = 0.1,
 ) -> list[PairAgreement]:
     """Agreement of each neighbouring pair of views (see pair_agreement).
 
@@ -542,7 +581,8 @@ def check_calibration(
         frames = view_frames(pool, per_frame, names, centers, voxel_size, plane_radius)
         agreements = [pool.submit(pair_agreement, frames[a], frames[b], names[a], names[b], max_distance,
                                   min_constraint=min_constraint, block_size=block_size, k_sigma=k_sigma,
-                                  min_mm=min_mm, min_deg=min_deg, iterations=iterations, min_blocks=min_blocks)
+                                  min_mm=min_mm, min_deg=min_deg, iterations=iterations, min_blocks=min_blocks,
+                                  min_agreement_gain=min_agreement_gain)
                        for a, b in pairs]
         return [f.result() for f in agreements]
 
@@ -582,20 +622,29 @@ def consensus(x: np.ndarray, k: float = 3.0, floor: float = 1e-3) -> np.ndarray:
 
 
 def rig_pair_system(frames: list, T: np.ndarray, pair: tuple[int, int], max_distance: float, min_overlap: int,
-                    centre: np.ndarray, radius: float):
+                    centre: np.ndarray, radius: float, keep_edges: bool = False):
     """(a, b, H, g, weighted RMS residual) of the ordered view pair (a, b) under the poses' corrections
     T (C, 4, 4), in world coordinates; None when they overlap in fewer than min_overlap points."""
     a, b = pair
-    # every match, coverage edges included: solved over all pairs at once under a prior, the refinement
-    # put cameras farther from the truth without them (tools/bench_calibration_refine)
     q, n, r, _, sg = _correspondences(frames[a], frames[b], np.linalg.inv(T[b]) @ T[a], max_distance,
-                                      within_coverage=False)
+                                      keep_edges=keep_edges)
     if len(r) < min_overlap:
         return None
     w = noise_weights(r, sg)
     q, n = q @ T[b][:3, :3].T + T[b][:3, 3], n @ T[b][:3, :3].T  # b's frame of reference -> the world now
     H, g = point_to_plane_system(q, n, r, w, centre, radius)
     return a, b, H, g, float(np.sqrt((w * r * r).sum() / max(w.sum(), 1e-12)))
+
+
+def rig_agreement(frames: list, T: np.ndarray, pairs: list, max_distance: float, min_overlap: int) -> float:
+    """Mean over the ordered view pairs of their matches' `capped_cost` (the check's matches) under the
+    poses' corrections T (C, 4, 4): how well the views agree, in units of their depth noise."""
+    costs = []
+    for a, b in pairs:
+        _, _, r, _, sg = _correspondences(frames[a], frames[b], np.linalg.inv(T[b]) @ T[a], max_distance)
+        if len(r) >= min_overlap:
+            costs.append(capped_cost(r, sg))
+    return float(np.mean(costs)) if costs else float("inf")
 
 
 def rig_normal_equations(systems: list, C: int) -> tuple[np.ndarray, np.ndarray]:
@@ -629,9 +678,12 @@ def refine_rig(
     """Correct all cameras' poses at once so their clouds agree (the check only measures pairs).
 
     points_per_view as in `check_calibration` (per view, one (N, 3) world array per frame). Each
-    ordered pair of views gives the check's point-to-plane correspondences (coverage edges kept),
-    frame by frame; the unknown is one scaled twist per camera about the clouds' centre, solved by
-    Gauss-Newton over all pairs together. A prior of `prior` x the largest curvature on each camera's total
+    ordered pair of views gives the check's point-to-plane correspondences, frame by frame, solved once
+    with the matches at the edges of what the target view covers and once without; the poses of the
+    solve under which the views agree better (`rig_agreement`) are kept: at 320x288 the edges' matches
+    help the solve, at 1280x720 they walked the rig 25-39 mm apart (tools/bench_calibration_refine).
+    The unknown is one scaled twist per camera about the clouds' centre, solved by Gauss-Newton over all
+    pairs together. A prior of `prior` x the largest curvature on each camera's total
     correction keeps the directions the scene hardly constrains where they were (they would walk on
     depth noise; tools/bench_calibration_refine); it grows with the square of a correction's length
     (scaled twist, metres) up to `linear_beyond_m` and linearly beyond, so one camera that needs a
@@ -652,31 +704,39 @@ def refine_rig(
         centre = everything.mean(axis=0)
         radius = max(float(np.sqrt(((everything - centre) ** 2).sum(axis=1).mean())), 1e-3)
         pairs = [(a, b) for a in range(C) for b in range(C) if a != b]
-        X = np.zeros((C, 6))  # each camera's total correction, a scaled twist
-        T = np.eye(4)[None].repeat(C, axis=0)
-        residuals, used, steps = [], 0, 0
 
-        def pair_system(pair):
-            return rig_pair_system(frames, T, pair, max_distance, min_overlap, centre, radius)
+        def solve(keep_edges: bool):
+            X = np.zeros((C, 6))  # each camera's total correction, a scaled twist
+            T = np.eye(4)[None].repeat(C, axis=0)
+            residuals, used, steps = [], 0, 0
 
-        for steps in range(1, iterations + 1):
-            systems = [s for s in pool.map(pair_system, pairs) if s is not None]
-            H, g = rig_normal_equations(systems, C)
-            residuals.append(float(np.mean([s[4] for s in systems])) if systems else float("nan"))
-            used = len(systems)
-            if not systems:
-                break
-            damping = prior * max(float(np.linalg.eigvalsh(H).max()), 1e-12)
-            # beyond `linear_beyond_m` a correction pays for its length, not its square (reweighted)
-            damping = damping * np.repeat(linear_beyond_m / np.maximum(np.linalg.norm(X, axis=1), linear_beyond_m), 6)
-            step = -np.linalg.solve(H + np.diag(damping), g + damping * X.reshape(-1)).reshape(C, 6)
-            X += step
+            def pair_system(pair):
+                return rig_pair_system(frames, T, pair, max_distance, min_overlap, centre, radius, keep_edges)
+
+            for steps in range(1, iterations + 1):
+                systems = [s for s in pool.map(pair_system, pairs) if s is not None]
+                H, g = rig_normal_equations(systems, C)
+                residuals.append(float(np.mean([s[4] for s in systems])) if systems else float("nan"))
+                used = len(systems)
+                if not systems:
+                    break
+                damping = prior * max(float(np.linalg.eigvalsh(H).max()), 1e-12)
+                # beyond `linear_beyond_m` a correction pays for its length, not its square (reweighted)
+                damping = damping * np.repeat(linear_beyond_m / np.maximum(np.linalg.norm(X, axis=1), linear_beyond_m), 6)
+                step = -np.linalg.solve(H + np.diag(damping), g + damping * X.reshape(-1)).reshape(C, 6)
+                X += step
+                T = np.stack([twist_transform(x, centre, radius) for x in X])
+                if np.abs(step).max() < tolerance_m:
+                    break
+            X -= consensus(X)  # the data see no common motion: see the docstring
             T = np.stack([twist_transform(x, centre, radius) for x in X])
-            if np.abs(step).max() < tolerance_m:
-                break
-        X -= consensus(X)  # the data see no common motion: see the docstring
-        T = np.stack([twist_transform(x, centre, radius) for x in X])
-        after = [s for s in pool.map(pair_system, pairs) if s is not None]
+            after = [s for s in pool.map(pair_system, pairs) if s is not None]
+            return T, used, steps, residuals, after
+
+        # with coverage edges and without: the better agreeing of the two (see the docstring)
+        solves = [solve(keep_edges) for keep_edges in (True, False)]
+        T, used, steps, residuals, after = min(
+            solves, key=lambda s: rig_agreement(frames, s[0], pairs, max_distance, min_overlap))
     moved_turned = np.array([correction_size(t, centre) for t in T]).reshape(C, 2)
     return RigRefinement(corrections=T, moved_mm=moved_turned[:, 0], turned_deg=moved_turned[:, 1], pairs=used,
                          iterations=steps, residual_before_mm=residuals[0] * 1000 if residuals else float("nan"),

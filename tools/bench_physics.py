@@ -107,12 +107,33 @@ def bench_static_hold(frames: int, noise_m: float = 0.002, noise_rad: float = 0.
     return out
 
 
-def gt_motion_results(script: str, root: Path, fps: float = 30.0, ik_iters: int = 30) -> tuple[Path, Path]:
-    """A tiny session of a generator script (one 64x48 camera: the motion is what matters) and a
-    results folder holding its ground-truth motion as if fitted: body_params, object_poses,
-    contact labels per hand (the script's hands on its contact frames) and the floor."""
+def truth_as_results(session: Path, out: Path, hands) -> Path:
+    """A results folder `out` holding a session's ground-truth motion as if fitted: body_params,
+    object_poses, contact labels per hand (`hands` of the script on its contact frames), the floor."""
     import shutil
 
+    out.mkdir(parents=True, exist_ok=True)
+    gt = session / "ground_truth"
+    for name in ("object_poses.npz", "contact.npy"):
+        if (gt / name).exists():
+            shutil.copy(gt / name, out / name)
+    with np.load(gt / "body_params.npz") as z:
+        params = {k: z[k] for k in z.files if k != "valid"}
+    T = len(params["transl"])
+    np.savez(out / "body_params.npz", valid=np.ones(T, bool), **params)
+    (out / "prepare").mkdir(exist_ok=True)
+    shutil.copy(gt / "ground.json", out / "prepare" / "ground.json")
+    contact = np.load(gt / "contact.npy").astype(bool) if (gt / "contact.npy").exists() else np.zeros(T, bool)
+    names = ["left_hand", "right_hand"]
+    rc = np.stack([contact & any(h.lower().startswith(s) for h in hands) for s in ("l", "r")], 1)
+    (out / "contact").mkdir(exist_ok=True)
+    np.savez(out / "contact" / "contact.npz", contact=contact, region_names=np.array(names), region_contact=rc)
+    return out
+
+
+def gt_motion_results(script: str, root: Path, fps: float = 30.0, ik_iters: int = 30) -> tuple[Path, Path]:
+    """A tiny session of a generator script (one 64x48 camera: the motion is what matters) and a
+    results folder holding its ground-truth motion as if fitted (`truth_as_results`)."""
     from intercap.synth.generator import SynthConfig, generate_session
     from intercap.synth.motions import get_script
 
@@ -121,24 +142,49 @@ def gt_motion_results(script: str, root: Path, fps: float = 30.0, ik_iters: int 
         cfg = SynthConfig(script=script, fps=fps, cameras=1, width=64, height=48, keypoints=False, masks=False,
                           walls=False, ik_iters=ik_iters, quiet=True)
         generate_session(cfg, session)
-    out = root / f"{script}_out"
-    out.mkdir(parents=True, exist_ok=True)
-    gt = session / "ground_truth"
-    for name in ("object_poses.npz", "contact.npy"):
-        shutil.copy(gt / name, out / name)
-    with np.load(gt / "body_params.npz") as z:
-        params = {k: z[k] for k in z.files}
-    T = len(params["transl"])
-    np.savez(out / "body_params.npz", valid=np.ones(T, bool), **params)
-    (out / "prepare").mkdir(exist_ok=True)
-    shutil.copy(gt / "ground.json", out / "prepare" / "ground.json")
-    contact = np.load(gt / "contact.npy").astype(bool)
-    hands = get_script(script).hands
-    names = ["left_hand", "right_hand"]
-    rc = np.stack([contact & any(h.lower().startswith(s) for h in hands) for s in ("l", "r")], 1)
-    (out / "contact").mkdir(exist_ok=True)
-    np.savez(out / "contact" / "contact.npz", contact=contact, region_names=np.array(names), region_contact=rc)
-    return session, out
+    return session, truth_as_results(session, root / f"{script}_out", get_script(script).hands)
+
+
+def fitted_against_truth(session: Path, fitted: Path, scratch: Path) -> dict:
+    """The physics stage on a fitted results folder and on the same session's ground-truth motion.
+
+    Held frames: the truth has the object in contact with the body and the floor carries none of it.
+    There the hands together should carry m (a - g), a the true object's acceleration (what the
+    truth's hands, floor and residual explain together). The hand-contact agreement is the share of
+    the fitted contact stage's contact frames in which the floor carries none of the fitted object
+    whose hands carry at least a tenth of the object's weight."""
+    from intercap.session import Session
+    from intercap.stages.physics import stage as physics
+    from intercap.synth.motions import get_script
+
+    s = Session.load(session)
+    info = json.loads((session / "ground_truth" / "info.json").read_text())
+    truth = truth_as_results(session, scratch / f"{session.name}_truth", get_script(info["script"]).hands)
+    figures, hands, floor = {}, {}, {}
+    for name, folder in (("truth", truth), ("fitted", fitted)):
+        figures[name] = physics.analyse(folder, s)
+        with np.load(folder / "physics" / "physics.npz") as z:
+            hands[name] = np.nansum(z["hand_force"], 1)
+            floor[name] = np.nan_to_num(z["object_ground_force"])
+            if name == "truth":
+                need = hands[name] + floor[name] + z["object_residual_force"]
+                weight = float(z["object_mass_kg"]) * float(np.linalg.norm(z["gravity"]))
+    on_floor = {name: np.linalg.norm(f, axis=-1) > 1e-6 for name, f in floor.items()}
+    held = np.load(truth / "contact.npy").astype(bool) & ~on_floor["truth"]
+    scale = np.maximum(np.linalg.norm(need, axis=-1), 1e-9)
+    carried = np.linalg.norm(hands["fitted"], axis=-1) / scale
+    error = np.linalg.norm(hands["fitted"] - need, axis=-1) / scale
+    off_floor = np.load(fitted / "contact.npy").astype(bool) & ~on_floor["fitted"]
+    has_wrench = np.linalg.norm(hands["fitted"], axis=-1) >= 0.1 * weight
+    return {
+        "frames": int(len(held)), "held_frames": int(held.sum()),
+        "hands_carry_median": float(np.median(carried[held])) if held.any() else float("nan"),
+        "hands_error_median": float(np.median(error[held])) if held.any() else float("nan"),
+        "contact_with_hand_wrench_pct": float(100 * has_wrench[off_floor].mean()) if off_floor.any() else float("nan"),
+        **{f"{k}_{name}": figures[name].get(k) for name in ("truth", "fitted")
+           for k in ("residual_root_force_pct_bw_mean", "residual_root_force_pct_bw_p95", "foot_skating_mm_s",
+                     "friction_cone_violation_pct")},
+    }
 
 
 SCRIPTS = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop")
@@ -169,9 +215,27 @@ def main(argv=None) -> None:
     ap.add_argument("--results", nargs="*", default=[], help="results folders of toss/hold/drop runs")
     ap.add_argument("--gt-motion", metavar="DIR", help="run the stage on the ground-truth motion of every generator "
                     "script (sessions generated into DIR once, at --fps) and print the residual table")
+    ap.add_argument("--fitted", nargs=2, action="append", metavar=("SESSION", "OUT"), default=[],
+                    help="the stage on a fitted results folder OUT of a generated SESSION and on its ground-truth "
+                    "motion (repeatable); scratch folders go to --scratch")
+    ap.add_argument("--scratch", default=None, help="where --fitted writes the truth's results (default: a temp dir)")
     ap.add_argument("--scripts", default=",".join(SCRIPTS))
     ap.add_argument("--fps", type=float, default=30.0)
     args = ap.parse_args(argv)
+    if args.fitted:
+        scratch = Path(args.scratch or tempfile.mkdtemp(prefix="bench_physics_"))
+        print("fitted motion against the truth's: hands carry |F_hands| / |m (a - g)| over held frames (median), "
+              "its error |F_hands - m (a - g)| / |m (a - g)|, fitted contact frames off the floor with a hand wrench, "
+              "residual root force (% body weight), foot skating (mm/s)")
+        for session, out in args.fitted:
+            r = fitted_against_truth(Path(session), Path(out), scratch)
+            print(f"  {Path(session).name}: held {r['held_frames']}/{r['frames']}, hands carry {r['hands_carry_median']:.2f}, "
+                  f"error {r['hands_error_median']:.2f}, contact with hand wrench {r['contact_with_hand_wrench_pct']:.1f} %, "
+                  f"residual {r['residual_root_force_pct_bw_mean_fitted']:.1f} (truth {r['residual_root_force_pct_bw_mean_truth']:.1f}, "
+                  f"p95 {r['residual_root_force_pct_bw_p95_fitted']:.1f} / {r['residual_root_force_pct_bw_p95_truth']:.1f}) % BW, "
+                  f"skating {r['foot_skating_mm_s_fitted']:.0f} (truth {r['foot_skating_mm_s_truth']:.0f}) mm/s, "
+                  f"cone violations {r['friction_cone_violation_pct_fitted']:.1f} (truth {r['friction_cone_violation_pct_truth']:.1f}) %")
+        return
     if args.gt_motion:
         rows = bench_gt_motion(Path(args.gt_motion), args.scripts.split(","), args.fps)
         print(f"ground-truth motion at {args.fps:g} fps: residual root force (% body weight)")

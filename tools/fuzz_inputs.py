@@ -439,8 +439,8 @@ def calibration_prepare_cases() -> list[Case]:
 
     inverted = T(2, lambda t: np.linalg.inv(np.array(t)).tolist())
     return [
-        Case("camera bumped 5 cm", "calibration", T(1, lambda t: rigid(t, dx=0.05)), P, "flag", ("cam1", C),
-             calibration=True),
+        Case("camera bumped 5 cm (3 check frames)", "calibration", T(1, lambda t: rigid(t, dx=0.05)),
+             run_argv("--set", "prepare.calib_frames=3"), "flag", ("cam1", C), calibration=True),
         Case("camera turned 1 degree", "calibration", T(1, lambda t: rigid(t, deg=1.0)), P, "flag", ("cam1", C),
              calibration=True),
         Case("camera turned 5 degrees (3 check frames)", "calibration", T(1, lambda t: rigid(t, deg=5.0)),

@@ -17,7 +17,9 @@ GT_ROTATION_TOL = 1e-3  # ground-truth poses may be stored as float32
 FOCAL_RANGE = (0.1, 10.0)  # plausible fx, fy as multiples of the image width
 
 
-PRINCIPAL_POINT_MARGIN = 0.25  # cx, cy may lie this fraction of the image size outside it
+# cx, cy may lie this fraction of the image size from its centre: a lens's principal point lies within a few % of
+# it; intrinsics of another resolution (twice: at the image's edge) or fx and cx swapped put it far out
+PRINCIPAL_POINT_FROM_CENTRE = 0.25
 
 
 MAX_TRANSLATION_M = 100.0  # camera and object positions farther from the world origin are implausible
@@ -96,16 +98,18 @@ def intrinsics_issue(K: Any, width: int | None = None, height: int | None = None
 
 def _intrinsics_plausibility_issue(K: np.ndarray, width: int, height: int) -> str | None:
     """Why a well-formed K does not fit a width x height image: focal lengths outside FOCAL_RANGE
-    times the width, or the principal point outside the image (with PRINCIPAL_POINT_MARGIN)."""
+    times the width, or the principal point far from the image centre (PRINCIPAL_POINT_FROM_CENTRE)."""
     lo, hi = FOCAL_RANGE[0] * width, FOCAL_RANGE[1] * width
     for name, f in (("fx", K[0, 0]), ("fy", K[1, 1])):
         if not lo <= f <= hi:
             return (f"K has implausible focal length {name}={f:g} px for an image {width} px wide "
                     f"(expected {lo:g}-{hi:g} px)")
     for name, c, size in (("cx", K[0, 2], width), ("cy", K[1, 2], height)):
-        margin = PRINCIPAL_POINT_MARGIN * size
-        if not -margin <= c <= size + margin:
-            return f"K has principal point {name}={c:g} px outside the image (0-{size} px)"
+        if abs(c - size / 2) > PRINCIPAL_POINT_FROM_CENTRE * size:
+            key = "width" if name == "cx" else "height"
+            where = "outside the image" if not 0 <= c <= size else "far from the centre of the image"
+            return (f"K has principal point {name}={c:g} px {where} ({key} {size} px; a lens's lies within a few % "
+                    f"of the centre): intrinsics of another resolution, or fx and cx swapped?")
     return None
 
 

@@ -1,11 +1,13 @@
-"""A view that sees part of the scene: one camera's images cropped to a box.
+"""A view that sees part of the scene: one camera's images seeing nothing outside a box.
 
 Real rigs often have a camera close in, or aimed so the feet or the head leave its image (BEHAVE's
 and InterCap's side cameras, a desk rig). Our generator frames the whole person in every ring camera;
-`crop_view` makes one of them look like such a camera: its colour, depth, masks and keypoints are
-cut to the box, its intrinsics shifted (cx, cy) and its size set to the box's, keypoints outside
-the box undetected (confidence 0), as a detector on the smaller image would leave them. The
-ground truth, the other cameras and the world are unchanged, so evaluation compares as before.
+`crop_view` makes one of them look like such a camera: outside the box its colour is black, its
+depth missing (0) and its masks empty, and keypoints there are undetected (confidence 0), as a
+detector on a smaller image would leave them. Its intrinsics and image size stay those of the lens
+(a real partial view is a whole image aimed elsewhere; cropping the files would put the principal
+point at their edge, which validate refuses as intrinsics of another resolution). The ground truth,
+the other cameras and the world are unchanged, so evaluation compares as before.
 """
 from __future__ import annotations
 
@@ -22,7 +24,7 @@ _KEYPOINT_KEYS = ("pose_keypoints_2d", "hand_left_keypoints_2d", "hand_right_key
 
 
 def _crop_keypoints(doc: dict, x0: int, y0: int, w: int, h: int) -> dict:
-    """OpenPose JSON with every point moved into the box's pixels; points outside it undetected."""
+    """OpenPose JSON with the points outside the box undetected."""
     for person in doc.get("people", []):
         for key in _KEYPOINT_KEYS:
             flat = person.get(key)
@@ -32,14 +34,14 @@ def _crop_keypoints(doc: dict, x0: int, y0: int, w: int, h: int) -> dict:
             for x, y, c in zip(flat[0::3], flat[1::3], flat[2::3]):
                 u, v = x - x0, y - y0
                 inside = c > 0 and 0 <= u <= w - 1 and 0 <= v <= h - 1
-                out += [u, v, c] if inside else [0.0, 0.0, 0.0]
+                out += [x, y, c] if inside else [0.0, 0.0, 0.0]
             person[key] = out
     return doc
 
 
 def crop_view(session_dir, out_dir, camera: int | str, box: tuple[int, int, int, int]) -> Path:
     """Write a copy of the session at `out_dir` in which `camera` sees only `box` = (x0, y0, width,
-    height) of its image (pixels). Other cameras' files are hard links to the originals."""
+    height) of its image (pixels): nothing outside it. Other cameras' files are hard links to the originals."""
     src, dst = Path(session_dir), Path(out_dir)
     if dst.exists():
         raise FileExistsError(f"{dst} exists; choose a new folder")
@@ -72,10 +74,9 @@ def crop_view(session_dir, out_dir, camera: int | str, box: tuple[int, int, int,
                 shutil.copy2(path, target)
                 continue
             params = [cv2.IMWRITE_JPEG_QUALITY, 95] if path.suffix.lower() in (".jpg", ".jpeg") else []
-            cv2.imwrite(str(target), image[y0:y0 + h, x0:x0 + w], params)
-
-    cam["K"][0][2] -= x0
-    cam["K"][1][2] -= y0
-    cam["width"], cam["height"] = w, h
+            seen = image[y0:y0 + h, x0:x0 + w].copy()
+            image[...] = 0
+            image[y0:y0 + h, x0:x0 + w] = seen
+            cv2.imwrite(str(target), image, params)
     write_json(dst / "calibration.json", calib)
     return dst

@@ -152,6 +152,7 @@ def test_body_only_session_without_frames_block(tmp_path: Path):
 def test_read_depth_batch_needs_equal_sizes(tiny_session: Path):
     calib = json.loads((tiny_session / "calibration.json").read_text())
     calib["cameras"][1]["width"] = 32
+    calib["cameras"][1]["K"][0][2] = 16.0  # the principal point stays near the centre of the narrower image
     (tiny_session / "calibration.json").write_text(json.dumps(calib))
     for f in range(3):  # make the files agree with the new calibration so the session loads
         for sub in ("color", "depth", "masks/person", "masks/object"):

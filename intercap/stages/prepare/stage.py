@@ -130,7 +130,7 @@ def estimate_ground(session, clouds: ViewClouds, cfg, progress: bool) -> tuple[G
 AGREEMENT_FIELDS = ("cam_a", "cam_b", "overlap_points", "median_distance_mm", "icp_rmse_mm", "correction_rotation_deg",
                     "correction_translation_mm", "fitness", "unobservable", "full_translation_mm", "full_rotation_deg",
                     "translation_sigma_mm", "rotation_sigma_deg", "observable_dof", "significance", "flagged",
-                    "blocks", "judged")
+                    "blocks", "judged", "agreement_gain_pct")
 
 
 def agreement_rows(results: list, frames: int) -> list[dict]:

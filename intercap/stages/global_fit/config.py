@@ -44,6 +44,7 @@ class GlobalConfig:
     repair_reach: int = 15  # frames either side whose median fit-to-data a frame is compared with
 
     start_smoothing_s: float = 0.05  # seconds: the per-frame body low-passed (Gaussian sigma) as the fit's start; 0: off
+    start_smoothing_alone_s: float = 0.1  # the same in a body-only joint fit (BENCHMARKS.md: a stronger smoothed start)
     shape_change_limit_mm: float = 15.0  # mm: the sequence-mean phenotype moving a frame's body more: frames keep their own
 
     # checks of the take (warnings in the log and the report)

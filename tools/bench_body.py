@@ -11,7 +11,7 @@ lacks the floor terms), and scored:
   * vertex-to-point-cloud distance: each view's segmented person points to the
     fitted surface, median per frame, averaged (the paper's fitting-accuracy
     figure; InterCap reports 19 mm at 3-5 minutes per frame), and the worst
-    frame's mean distance (issue 11.7: every frame within 20 mm on average),
+    frame's mean distance (every frame within 20 mm on average),
   * frames not fitted, seconds per frame (all views) and peak memory.
 
     python -m tools.bench_body [--frames 30] [--sessions pick4,drink4,pick6] [--keep DIR] [--set body.KEY=VALUE]

@@ -1,4 +1,4 @@
-"""Benchmark of the `physics` stage (issue 14).
+"""Benchmark of the `physics` stage.
 
     OMP_NUM_THREADS=1 python -m tools.bench_physics [--frames 90] [--skip-filters]
 
@@ -10,7 +10,9 @@
    stage speed (s/frame without and with the body model's construction), peak RSS.
 3. `--gt-motion DIR`: the stage on the ground-truth motion of every generator script (tiny one-camera
    sessions generated into DIR once, 30 fps): residual root force (% body weight) per script.
-4. Toss / hold / drop sessions of the synthetic generator, when given (`--results OUT...`: results
+4. `--supports DIR`: fixed supports (session.yaml `supports`) on ground-truth motion: the seat's share of
+   the body weight in a seated take, the table's share of a resting box's weight.
+5. Toss / hold / drop sessions of the synthetic generator, when given (`--results OUT...`: results
    folders of `intercap run` on those sessions): their physics figures from metrics.json.
 """
 from __future__ import annotations
@@ -145,7 +147,7 @@ def gt_motion_results(script: str, root: Path, fps: float = 30.0, ik_iters: int 
     return session, truth_as_results(session, root / f"{script}_out", get_script(script).hands)
 
 
-def fitted_against_truth(session: Path, fitted: Path, scratch: Path) -> dict:
+def fitted_against_truth(session: Path, fitted: Path, scratch: Path, cfg=None) -> dict:
     """The physics stage on a fitted results folder and on the same session's ground-truth motion.
 
     Held frames: the truth has the object in contact with the body and the floor carries none of it.
@@ -162,7 +164,7 @@ def fitted_against_truth(session: Path, fitted: Path, scratch: Path) -> dict:
     truth = truth_as_results(session, scratch / f"{session.name}_truth", get_script(info["script"]).hands)
     figures, hands, floor = {}, {}, {}
     for name, folder in (("truth", truth), ("fitted", fitted)):
-        figures[name] = physics.analyse(folder, s)
+        figures[name] = physics.analyse(folder, s, cfg)
         with np.load(folder / "physics" / "physics.npz") as z:
             hands[name] = np.nansum(z["hand_force"], 1)
             floor[name] = np.nan_to_num(z["object_ground_force"])
@@ -187,10 +189,56 @@ def fitted_against_truth(session: Path, fitted: Path, scratch: Path) -> dict:
     }
 
 
+def bench_supports(root: Path, fps: float = 15.0, cfg=None) -> dict:
+    """Fixed supports on ground-truth motion (tiny sessions with the furniture given as session.yaml
+    `supports`): `sit_stand`, the seat's and the feet's share of the body weight while seated and the
+    seat's while standing; `table_lift`, the table's share of the box's weight while it rests on the
+    table untouched, and the box's unexplained force there (its weight's %)."""
+    from intercap.session import Session
+    from intercap.stages.physics import stage as physics
+    from intercap.synth.generator import SynthConfig, generate_session
+    from intercap.synth.motions import get_script
+
+    out = {}
+    for script in ("sit_stand", "table_lift"):
+        session = root / f"{script}_supports"
+        if not (session / "ground_truth" / "body_params.npz").exists():
+            generate_session(SynthConfig(script=script, fps=fps, cameras=1, width=64, height=48, keypoints=False,
+                                         masks=False, walls=False, ik_iters=30, quiet=True, annotate=True), session)
+        results = truth_as_results(session, root / f"{script}_supports_out", get_script(script).hands)
+        tick = time.perf_counter()
+        figures = physics.analyse(results, Session.load(session), cfg)
+        seconds = (time.perf_counter() - tick) / max(figures["frames_valid"], 1)
+        with np.load(results / "physics" / "physics.npz") as z:
+            body_weight, object_weight = float(z["body_mass_kg"]) * G, float(z["object_mass_kg"]) * G
+            seat, feet = z["support_force"].sum(1)[:, 2], z["foot_force"].sum(1)[:, 2]
+            object_support, object_residual = z["object_ground_force"][:, 2], z["object_residual_force"]
+        if script == "sit_stand":
+            phases = json.loads((session / "ground_truth" / "info.json").read_text())["phases"]
+            seated = np.arange(phases["seated"][0], phases["seated"][1] + 1)
+            standing = np.r_[np.arange(phases["stand"][0], phases["stand"][1] + 1),
+                             np.arange(phases["stand_again"][0], phases["stand_again"][1] + 1)]
+            out[script] = {"seated_frames": len(seated), "seat_share_median": float(np.median(seat[seated]) / body_weight),
+                           "seat_share_min": float(seat[seated].min() / body_weight),
+                           "feet_share_median": float(np.median(feet[seated]) / body_weight),
+                           "seat_share_standing_max": float(seat[standing].max() / body_weight)}
+        else:
+            contact = np.load(session / "ground_truth" / "contact.npy").astype(bool)
+            position = np.load(session / "ground_truth" / "object_poses.npz")["t"]
+            still = np.linalg.norm(np.gradient(position, axis=0), axis=1) < 1e-3
+            resting = ~contact & (position[:, 2] > 0.3) & still
+            out[script] = {"resting_frames": int(resting.sum()),
+                           "table_share_median": float(np.median(object_support[resting]) / object_weight),
+                           "object_residual_pct_max": float(100 * np.linalg.norm(object_residual[resting], axis=1).max()
+                                                            / object_weight)}
+        out[script].update(residual_root_force_pct_bw_mean=figures["residual_root_force_pct_bw_mean"], s_per_frame=seconds)
+    return out
+
+
 SCRIPTS = ("pick_place", "lift_drink", "push_chair", "toss", "hold", "drop")
 
 
-def bench_gt_motion(root: Path, scripts=SCRIPTS, fps: float = 30.0) -> list[dict]:
+def bench_gt_motion(root: Path, scripts=SCRIPTS, fps: float = 30.0, cfg=None) -> list[dict]:
     """The physics stage on each script's ground-truth motion: residual root force (% body weight)."""
     from intercap.session import Session
     from intercap.stages.physics import stage as physics
@@ -199,7 +247,7 @@ def bench_gt_motion(root: Path, scripts=SCRIPTS, fps: float = 30.0) -> list[dict
     for script in scripts:
         session, out = gt_motion_results(script, root, fps)
         tick = time.perf_counter()
-        f = physics.analyse(out, Session.load(session))
+        f = physics.analyse(out, Session.load(session), cfg)
         rows.append({"script": script, "frames": int(f["frames_valid"]),
                      **{k: f.get(k) for k in ("residual_root_force_pct_bw_mean", "residual_root_force_pct_bw_p95",
                                               "friction_cone_violation_pct", "foot_skating_mm_s",
@@ -219,16 +267,23 @@ def main(argv=None) -> None:
                     help="the stage on a fitted results folder OUT of a generated SESSION and on its ground-truth "
                     "motion (repeatable); scratch folders go to --scratch")
     ap.add_argument("--scratch", default=None, help="where --fitted writes the truth's results (default: a temp dir)")
+    ap.add_argument("--supports", metavar="DIR", help="fixed supports on ground-truth motion: a seated take and a box "
+                    "resting on a table (sessions generated into DIR once, at --fps, default 15 here)")
     ap.add_argument("--scripts", default=",".join(SCRIPTS))
     ap.add_argument("--fps", type=float, default=30.0)
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a configuration override for the stage (e.g. physics.torque_weight=0), repeatable")
     args = ap.parse_args(argv)
+    from intercap.config import load_config
+
+    cfg = load_config(None, args.set)
     if args.fitted:
         scratch = Path(args.scratch or tempfile.mkdtemp(prefix="bench_physics_"))
         print("fitted motion against the truth's: hands carry |F_hands| / |m (a - g)| over held frames (median), "
               "its error |F_hands - m (a - g)| / |m (a - g)|, fitted contact frames off the floor with a hand wrench, "
               "residual root force (% body weight), foot skating (mm/s)")
         for session, out in args.fitted:
-            r = fitted_against_truth(Path(session), Path(out), scratch)
+            r = fitted_against_truth(Path(session), Path(out), scratch, cfg)
             print(f"  {Path(session).name}: held {r['held_frames']}/{r['frames']}, hands carry {r['hands_carry_median']:.2f}, "
                   f"error {r['hands_error_median']:.2f}, contact with hand wrench {r['contact_with_hand_wrench_pct']:.1f} %, "
                   f"residual {r['residual_root_force_pct_bw_mean_fitted']:.1f} (truth {r['residual_root_force_pct_bw_mean_truth']:.1f}, "
@@ -236,8 +291,20 @@ def main(argv=None) -> None:
                   f"skating {r['foot_skating_mm_s_fitted']:.0f} (truth {r['foot_skating_mm_s_truth']:.0f}) mm/s, "
                   f"cone violations {r['friction_cone_violation_pct_fitted']:.1f} (truth {r['friction_cone_violation_pct_truth']:.1f}) %")
         return
+    if args.supports:
+        r = bench_supports(Path(args.supports), args.fps if args.fps != 30.0 else 15.0, cfg)
+        sit, table = r["sit_stand"], r["table_lift"]
+        print(f"supports on ground-truth motion: sit_stand seated {sit['seated_frames']} frames, seat carries "
+              f"{sit['seat_share_median']:.3f} of the body weight (median; min {sit['seat_share_min']:.3f}), feet "
+              f"{sit['feet_share_median']:.3f}, seat while standing {sit['seat_share_standing_max']:.3f} (max); "
+              f"residual {sit['residual_root_force_pct_bw_mean']:.2f} % BW; {sit['s_per_frame']:.3f} s/frame")
+        print(f"  table_lift: box resting untouched {table['resting_frames']} frames, the table carries "
+              f"{table['table_share_median']:.3f} of its weight (median), box unexplained force "
+              f"{table['object_residual_pct_max']:.2f} % of its weight (max); residual "
+              f"{table['residual_root_force_pct_bw_mean']:.2f} % BW; {table['s_per_frame']:.3f} s/frame")
+        return
     if args.gt_motion:
-        rows = bench_gt_motion(Path(args.gt_motion), args.scripts.split(","), args.fps)
+        rows = bench_gt_motion(Path(args.gt_motion), args.scripts.split(","), args.fps, cfg)
         print(f"ground-truth motion at {args.fps:g} fps: residual root force (% body weight)")
         print("  script      frames  resid_mean  resid_p95  cone_viol_%  skating_mm_s  penetr_max_mm  flights  s/frame")
         for r in rows:

@@ -4,7 +4,7 @@ ground truth laid out as the object, body and global stages' results, so it need
 Prints, for the report: wall and CPU seconds of `write_report` (with --gt: the evaluation
 section too), the overlay silhouette IoU it found per stage; for the viewer: seconds from start
 to the first frame (loading the arrays + building the scene), and per-frame stepping in ms
-(without and with the depth clouds). Targets (issue 13): report <= 10 s on the sample, viewer
+(without and with the depth clouds). Targets: report <= 10 s on the sample, viewer
 first frame <= 3 s, stepping <= 100 ms.
 
 CPU times are process CPU seconds; run with one thread for figures comparable across machines:

@@ -28,7 +28,7 @@ where graphs are recorded (`optim.records_graphs`: the object renders in fixed s
 pairs keep theirs).
 
 `--lines` names each site down to its line, and looks into our body models, anny and roma too
-(stop 35 found anny's phenotype weights and kinematics so).
+(anny's phenotype weights and kinematics were found so).
 
 `--set body.batch_frames=32 --set body.side_by_side=8 --set global.window_frames=300 --set
 object.side_by_side=8 --set body.line_search=armijo --set global.line_search=armijo` runs the GPU's

@@ -1,4 +1,4 @@
-"""Contact forces by bounded least squares (issue 14, part 4).
+"""Contact forces by bounded least squares.
 
 Per frame, the body's needed wrench about its root W_b (6,) and the object's about its centre
 of mass W_o (6,) (newton_euler) are explained by contact unknowns x:
@@ -54,46 +54,100 @@ def wrench_map(points: np.ndarray, about: np.ndarray, directions: np.ndarray) ->
 
 @dataclass
 class ContactSolution:
-    hand_force: np.ndarray  # (T, 2, 3) N, by each hand on the object
+    hand_force: np.ndarray  # (T, 2, 3) N, by each hand on the object (or the fixed structure it grips)
     hand_torque: np.ndarray  # (T, 2, 3) N m, about the hand's contact point
     foot_point_force: np.ndarray  # (T, 2, P, 3) N, ground on each sole point
     object_ground_force: np.ndarray  # (T, Q, 3) N, ground on each object point
     body_residual: np.ndarray  # (T, 6) force N, torque N m about the root
     object_residual: np.ndarray  # (T, 6) force N, torque N m about the object's COM
+    support_point_force: np.ndarray | None = None  # (T, S, 3) N, supports on each body point touching them
+
+
+@dataclass
+class TorquePrior:
+    """Joint torques as a prior on how contacts share a load: tau = base + B x for the joints in
+    `heads` (the physics stage: the trunk's and legs'); minimising w |tau|^2 besides the root's balance
+    puts a seated body's weight through the seat rather than through bent knees (the body carries loads
+    the way that needs least effort).
+    carries_*: (J, n) bool, joint j carries that contact (its bone lies in the joint's subtree)."""
+
+    heads: np.ndarray  # (T, J, 3) the joints' positions
+    base: np.ndarray  # (T, J, 3) N m, their torques with no contact
+    carries_hands: np.ndarray  # (J, 2)
+    carries_feet: np.ndarray  # (J, 2P)
+    carries_supports: np.ndarray | None = None  # (J, S)
+    weight: float = 1e-2  # (N m)^-2 against the root balance's N^-2 / (N m)^-2
+
+
+def friction_pyramids(normals: np.ndarray, mu: float, edges: int = 4) -> np.ndarray:
+    """(..., 3, E) friction_pyramid of each normal (..., 3)."""
+    flat = np.asarray(normals, np.float64).reshape(-1, 3)
+    out = np.stack([friction_pyramid(n, mu, edges) if np.isfinite(n).all() and np.linalg.norm(n) > 0
+                    else np.zeros((3, edges)) for n in flat])
+    return out.reshape(*np.shape(normals)[:-1], 3, edges)
 
 
 def solve_contacts(body_wrench, root, foot_points, foot_active, normal, mu, object_wrench=None, object_com=None,
                    hand_points=None, hand_active=None, object_points=None, object_active=None, edges: int = 4,
-                   object_weight: float = 10.0, reg_force: float = 1e-4, reg_torque: float = 1e-2) -> ContactSolution:
+                   object_weight: float = 10.0, reg_force: float = 1e-4, reg_torque: float = 1e-2,
+                   support_points=None, support_normals=None, support_active=None, grip_active=None,
+                   torque_prior: TorquePrior | None = None, object_normals=None) -> ContactSolution:
     """Contact forces of T frames. body_wrench (T, 6) about root (T, 3); foot_points (T, 2, P, 3)
     with foot_active (T, 2, P); object_wrench (T, 6) about object_com (T, 3) or None (object
-    unknown: hands and object-ground contacts are left out); hand_points (T, 2, 3), hand_active
-    (T, 2); object_points (T, Q, 3), object_active (T, Q). Frames with non-finite inputs give NaN."""
+    unknown: hands on it and object-ground contacts are left out); hand_points (T, 2, 3), hand_active
+    (T, 2); object_points (T, Q, 3), object_active (T, Q). Fixed supports (a seat, a table, a bar):
+    body points support_points (T, S, 3) touching them (support_active (T, S)) push along their
+    surface normals support_normals (T, S, 3) within friction pyramids; grip_active (T, 2): a hand
+    grips a fixed structure (a free wrench on the body only). torque_prior: joint torques kept small.
+    object_normals (T, Q, 3): the surface each object point rests on (a table top), default the floor's.
+    Frames with non-finite inputs give NaN."""
     body_wrench = np.asarray(body_wrench, np.float64)
     T, P = body_wrench.shape[0], foot_points.shape[2]
     D = friction_pyramid(normal, mu, edges)  # (3, E)
     E = D.shape[1]
     has_object = object_wrench is not None
-    # columns: hands (2 x 6), feet (2 x P x E), object points (Q x E)
-    cols_body = [-np.broadcast_to(_hand_map(hand_points, root), (T, 2, 6, 6)) if has_object else np.zeros((T, 2, 6, 6))]
-    A_body_feet = wrench_map(foot_points.reshape(T, 2 * P, 3), root, D)  # (T, 2P, 6, E)
+    grips = np.zeros((T, 2), bool) if grip_active is None else np.asarray(grip_active, bool)
+    hands_used = has_object or grips.any()
+    S = 0 if support_points is None else support_points.shape[1]
     Q = object_points.shape[1] if has_object and object_points is not None else 0
-    n = 12 + 2 * P * E + Q * E
-    A = np.zeros((T, 12, n))
-    A[:, :6, :12] = cols_body[0].transpose(0, 2, 1, 3).reshape(T, 6, 12)
-    A[:, :6, 12:12 + 2 * P * E] = A_body_feet.transpose(0, 2, 1, 3).reshape(T, 6, 2 * P * E)
-    b = np.zeros((T, 12))
+    # columns: hands (2 x 6), feet (2 x P x E), object points (Q x E), support points (S x E)
+    c_feet, c_obj = 12, 12 + 2 * P * E
+    c_sup = c_obj + Q * E
+    n = c_sup + S * E
+    hand_body = -_hand_map(hand_points, root) if hands_used else np.zeros((T, 2, 6, 6))
+    A_body_feet = wrench_map(foot_points.reshape(T, 2 * P, 3), root, D)  # (T, 2P, 6, E)
+    rows = 12 + (3 * torque_prior.heads.shape[1] if torque_prior is not None else 0)
+    A = np.zeros((T, rows, n))
+    A[:, :6, :12] = hand_body.transpose(0, 2, 1, 3).reshape(T, 6, 12)
+    A[:, :6, c_feet:c_obj] = A_body_feet.transpose(0, 2, 1, 3).reshape(T, 6, 2 * P * E)
+    b = np.zeros((T, rows))
     b[:, :6] = body_wrench
     active = np.zeros((T, n), bool)
-    active[:, 12:12 + 2 * P * E] = np.repeat(np.asarray(foot_active, bool).reshape(T, 2 * P), E, axis=1)
+    active[:, c_feet:c_obj] = np.repeat(np.asarray(foot_active, bool).reshape(T, 2 * P), E, axis=1)
     if has_object:
-        A[:, 6:, :12] = _hand_map(hand_points, object_com).transpose(0, 2, 1, 3).reshape(T, 6, 12) * object_weight
+        on_object = _hand_map(hand_points, object_com) * (~grips)[:, :, None, None]  # a gripping hand is not on it
+        A[:, 6:12, :12] = on_object.transpose(0, 2, 1, 3).reshape(T, 6, 12) * object_weight
         if Q:
-            A_obj = wrench_map(object_points, object_com, D)  # (T, Q, 6, E)
-            A[:, 6:, 12 + 2 * P * E:] = A_obj.transpose(0, 2, 1, 3).reshape(T, 6, Q * E) * object_weight
-            active[:, 12 + 2 * P * E:] = np.repeat(np.asarray(object_active, bool), E, axis=1)
-        b[:, 6:] = np.asarray(object_wrench, np.float64) * object_weight
+            if object_normals is None:
+                A_obj = wrench_map(object_points, object_com, D)  # (T, Q, 6, E)
+            else:
+                D_obj = friction_pyramids(object_normals, mu, edges)  # (T, Q, 3, E)
+                A_obj = np.concatenate([D_obj, skew(object_points - object_com[:, None]) @ D_obj], -2)
+            A[:, 6:12, c_obj:c_sup] = A_obj.transpose(0, 2, 1, 3).reshape(T, 6, Q * E) * object_weight
+            active[:, c_obj:c_sup] = np.repeat(np.asarray(object_active, bool), E, axis=1)
+        b[:, 6:12] = np.asarray(object_wrench, np.float64) * object_weight
         active[:, :12] = np.repeat(np.asarray(hand_active, bool), 6, axis=1)
+    active[:, :12] |= np.repeat(grips, 6, axis=1)
+    D_sup = None
+    if S:
+        D_sup = friction_pyramids(support_normals, mu, edges)  # (T, S, 3, E)
+        arm = skew(support_points - root[:, None])  # (T, S, 3, 3)
+        A_sup = np.concatenate([D_sup, arm @ D_sup], -2)  # (T, S, 6, E)
+        A[:, :6, c_sup:] = A_sup.transpose(0, 2, 1, 3).reshape(T, 6, S * E)
+        active[:, c_sup:] = np.repeat(np.asarray(support_active, bool), E, axis=1)
+    if torque_prior is not None:
+        _torque_rows(A, b, torque_prior, hand_points if hands_used else None, foot_points, D, support_points, D_sup,
+                     (c_feet, c_obj, c_sup))
     reg = np.full(n, reg_force)
     reg[[3, 4, 5, 9, 10, 11]] = reg_torque
     lb = np.zeros(n)
@@ -110,15 +164,49 @@ def solve_contacts(body_wrench, root, foot_points, foot_active, normal, mu, obje
             x[t, cols] = lsq_linear(At, bt, bounds=(lb[cols], np.inf), method="bvls").x
         else:
             x[t, cols] = np.linalg.lstsq(At, bt, rcond=None)[0]
-    resid = b - np.einsum("tkn,tn->tk", A, x)
+    resid = b[:, :12] - np.einsum("tkn,tn->tk", A[:, :12], x)
     resid[:, 6:] /= object_weight
     x[~good] = np.nan
     resid[~good] = np.nan
     hands = x[:, :12].reshape(T, 2, 6)
-    feet = np.einsum("ie,tpe->tpi", D, x[:, 12:12 + 2 * P * E].reshape(T, 2 * P, E)).reshape(T, 2, P, 3)
-    obj = np.einsum("ie,tqe->tqi", D, x[:, 12 + 2 * P * E:].reshape(T, Q, E))
+    feet = np.einsum("ie,tpe->tpi", D, x[:, c_feet:c_obj].reshape(T, 2 * P, E)).reshape(T, 2, P, 3)
+    if object_normals is not None and Q:
+        obj = np.einsum("tqie,tqe->tqi", D_obj, x[:, c_obj:c_sup].reshape(T, Q, E))
+    else:
+        obj = np.einsum("ie,tqe->tqi", D, x[:, c_obj:c_sup].reshape(T, Q, E))
+    sup = np.einsum("tsie,tse->tsi", D_sup, x[:, c_sup:].reshape(T, S, E)) if S else None
     return ContactSolution(hands[..., :3], hands[..., 3:], feet, obj, resid[:, :6],
-                           resid[:, 6:] if has_object else np.full((T, 6), np.nan))
+                           resid[:, 6:] if has_object else np.full((T, 6), np.nan), sup)
+
+
+def _torque_rows(A, b, prior: TorquePrior, hand_points, foot_points, D, support_points, D_sup, starts) -> None:
+    """Fill the joint-torque rows of A and b (in place): sqrt(w) (B x + base) -> 0. An external force f
+    at r on the body changes the torque at joint p that carries it by -(r - p) x f (newton_euler);
+    the hands' columns are what the hand applies, the body feels the opposite."""
+    T, J = prior.heads.shape[:2]
+    w = np.sqrt(prior.weight)
+    c_feet, c_obj, c_sup = starts
+    rows = slice(12, 12 + 3 * J)
+    b[:, rows] = -w * prior.base.reshape(T, 3 * J)
+    heads = prior.heads[:, :, None]  # (T, J, 1, 3)
+
+    def block(points, dirs, carries):  # points (T, N, 3), dirs (T, N, 3, K) -> (T, 3J, N K)
+        arm = skew(points[:, None] - heads)  # (T, J, N, 3, 3)
+        out = -(arm @ dirs[:, None]) * carries[None, :, :, None, None]  # (T, J, N, 3, K)
+        return out.transpose(0, 1, 3, 2, 4).reshape(T, 3 * J, -1)
+
+    P2 = foot_points.shape[1] * foot_points.shape[2]
+    E = D.shape[1]
+    feet_dirs = np.broadcast_to(D, (T, P2, 3, E))
+    A[:, rows, c_feet:c_obj] = w * block(foot_points.reshape(T, P2, 3), feet_dirs, prior.carries_feet)
+    if hand_points is not None:
+        eye = np.broadcast_to(np.eye(3), (T, 2, 3, 3))
+        force_part = -block(hand_points, eye, prior.carries_hands).reshape(T, 3 * J, 2, 3)
+        torque_part = np.einsum("jh,ik->jihk", prior.carries_hands.astype(float), np.eye(3)).reshape(3 * J, 2, 3)
+        A[:, rows, :12] = w * np.concatenate([force_part, np.broadcast_to(torque_part, force_part.shape)],
+                                             -1).reshape(T, 3 * J, 12)
+    if D_sup is not None:
+        A[:, rows, c_sup:] = w * block(support_points, D_sup, prior.carries_supports)
 
 
 def _hand_map(points: np.ndarray, about: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Velocities and accelerations without noise blow-up (issue 14, part 3).
+"""Velocities and accelerations without noise blow-up.
 
 2 mm of position noise at 30 fps becomes metres per second squared of acceleration noise under
 plain finite differences, so trajectories are filtered while they are differentiated:

@@ -1,4 +1,4 @@
-"""Mass model of the body and the object (issue 14, part 2).
+"""Mass model of the body and the object.
 
 Body: total mass from the fitted rest mesh's volume times a tissue density (the mesh must be
 watertight), unless the session gives `body: {mass_kg: ...}`. That mass is split into segments

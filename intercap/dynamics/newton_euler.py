@@ -1,4 +1,4 @@
-"""Newton-Euler over rigid segments in the world frame, batched over frames (issue 14, part 4).
+"""Newton-Euler over rigid segments in the world frame, batched over frames.
 
 Each segment s has mass m, centre of mass c (T, 3), inertia I (T, 3, 3) about c (world frame),
 linear acceleration a, angular velocity w and acceleration al. What it needs to move as it does:

@@ -1,4 +1,4 @@
-"""Physical plausibility figures of a physics result (issue 14, part 7).
+"""Physical plausibility figures of a physics result.
 
 They need no ground truth, so they judge real captures too. The `physics` stage stores the
 per-frame quantities in OUT/physics/physics.npz (besides the contract keys):

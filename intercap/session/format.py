@@ -54,10 +54,12 @@ BODY_MODELS = ("anny", "smplx")
 DIST_LENGTHS = (0, 4, 5, 8)
 
 
-SESSION_KEYS = ("fps", "object", "frames", "contact_frames", "ground", "body")
+SESSION_KEYS = ("fps", "object", "frames", "contact_frames", "ground", "body", "supports")
 
 
-OBJECT_KEYS = ("mesh", "name", "mass_kg", "density_kg_m3", "contact_vertices", "initial_pose")
+OBJECT_KEYS = ("mesh", "name", "mass_kg", "density_kg_m3", "contact_vertices", "initial_pose", "static")
+SUPPORT_KEYS = ("name", "mesh", "grip")
+SUPPORT_EXTENT_M = 30.0  # a support mesh larger than this (m) is taken for millimetres
 # Largest plausible object.mass_kg (kg) and object.density_kg_m3 (kg/m^3; steel is 7,850): beyond, a unit slip
 OBJECT_LIMITS = {"mass_kg": 500.0, "density_kg_m3": 25000.0}
 OBJECT_UNITS = {"mass_kg": ("kilograms", "grams"), "density_kg_m3": ("kg/m^3", "other units")}
@@ -132,6 +134,7 @@ class ObjectInfo:
     density_kg_m3: float | None = None  # mass from the mesh volume when mass_kg is absent
     contact_vertices: np.ndarray | None = None  # (K,) int64 vertex ids
     initial_pose: tuple[np.ndarray, np.ndarray] | None = None  # R (3, 3), t (3,): object -> world at frames.start
+    static: bool = False  # furniture that never moves (a chair, a stool): physics takes it as a support
     _mesh: trimesh.Trimesh | None = field(default=None, init=False, repr=False, compare=False)
 
     def load_mesh(self) -> trimesh.Trimesh:
@@ -139,6 +142,16 @@ class ObjectInfo:
         if self._mesh is None:
             self._mesh = load_mesh_file(self.mesh_path)
         return self._mesh.copy()
+
+
+@dataclass
+class SupportInfo:
+    """A fixed structure that can carry the body (physics): a seat, a table, a bar; mesh in world metres."""
+
+    name: str
+    mesh_path: Path
+    grip: bool = False  # hands may grip it (a bar, a handle): a free wrench per hand, not only pushes
+    mesh: trimesh.Trimesh | None = field(default=None, repr=False, compare=False)
 
 
 @dataclass
@@ -411,7 +424,70 @@ def parse_object(root: Path, block: Any, path: Path, out: ProblemList) -> Object
     if pose is not None:
         obj.initial_pose = _parse_pose(pose, path, out)
         ok = ok and obj.initial_pose is not None
+    static = block.get("static", False)
+    if not isinstance(static, bool):
+        out.fatal(path, f"`object.static` must be true or false, got {static!r}")
+        ok = False
+    obj.static = static is True
     return obj if ok else None
+
+
+def parse_supports(root: Path, value: Any, path: Path, out: ProblemList) -> list[SupportInfo]:
+    """`supports:` of session.yaml: a list of {name, mesh (world coordinates, metres), grip}."""
+    if value is None:
+        return []
+    if not isinstance(value, list):
+        out.fatal(path, f"`supports` must be a list of {{name, mesh, grip}} entries, got {value!r}")
+        return []
+    supports = []
+    for i, entry in enumerate(value):
+        key = f"supports[{i}]"
+        if not isinstance(entry, dict) or not isinstance(entry.get("mesh"), str) or not entry["mesh"]:
+            out.fatal(path, f"`{key}` must be a mapping with `mesh` (a mesh file in world coordinates), got {entry!r}")
+            continue
+        for k in entry:
+            if k not in SUPPORT_KEYS:
+                out.warn(path, f"unknown key `{key}.{k}` ignored (known: {', '.join(SUPPORT_KEYS)})")
+        grip = entry.get("grip", False)
+        if not isinstance(grip, bool):
+            out.fatal(path, f"`{key}.grip` must be true or false, got {grip!r}")
+            continue
+        mesh_path = session_file(root, entry["mesh"], f"{key}.mesh", path, out)
+        if mesh_path is None:
+            continue
+        mesh = _read_support_mesh(mesh_path, f"{key}.mesh", out)
+        if mesh is not None:
+            supports.append(SupportInfo(str(entry.get("name") or mesh_path.stem), mesh_path, grip, mesh))
+    return supports
+
+
+def _load_named_mesh(mesh_path: Path, what: str, key: str, out: ProblemList) -> trimesh.Trimesh | None:
+    """The `what` mesh named by session.yaml's `key`, or None with a fatal problem: missing or unreadable."""
+    if not mesh_path.is_file():
+        out.fatal(mesh_path, f"{what} mesh missing (named by `{key}` in session.yaml)")
+        return None
+    try:
+        return load_mesh_file(mesh_path)
+    except Exception as exc:  # trimesh raises many kinds on bad files
+        out.fatal(mesh_path, f"{what} mesh unreadable ({type(exc).__name__}: {exc})")
+        return None
+
+
+def _read_support_mesh(mesh_path: Path, key: str, out: ProblemList) -> trimesh.Trimesh | None:
+    """A support's mesh, or None with a fatal problem: missing, unreadable, no faces, not metres."""
+    mesh = _load_named_mesh(mesh_path, "support", key, out)
+    if mesh is None:
+        return None
+    vertices = np.asarray(mesh.vertices)
+    if len(mesh.faces) == 0 or not np.isfinite(vertices).all():
+        out.fatal(mesh_path, "support mesh has no faces or non-finite vertices")
+        return None
+    extent = float(np.ptp(vertices, axis=0).max())
+    if extent > SUPPORT_EXTENT_M:
+        out.fatal(mesh_path, f"support mesh is {extent:.4g} m across (over {SUPPORT_EXTENT_M:g} m): is it in "
+                  "millimetres? It must be in metres, world coordinates")
+        return None
+    return mesh
 
 
 def session_file(root: Path, name: str, key: str, yaml_path: Path, out: ProblemList) -> Path | None:
@@ -453,13 +529,8 @@ def mesh_content_issue(mesh: trimesh.Trimesh) -> str | None:
 
 def _read_object_mesh(mesh_path: Path, out: ProblemList) -> trimesh.Trimesh | None:
     """The object's mesh, or None with a fatal problem when it is missing, unreadable or implausible."""
-    if not mesh_path.is_file():
-        out.fatal(mesh_path, "object mesh missing (named by `object.mesh` in session.yaml)")
-        return None
-    try:
-        mesh = load_mesh_file(mesh_path)
-    except Exception as exc:  # trimesh raises many kinds on bad files
-        out.fatal(mesh_path, f"object mesh unreadable ({type(exc).__name__}: {exc})")
+    mesh = _load_named_mesh(mesh_path, "object", "object.mesh", out)
+    if mesh is None:
         return None
     issue = mesh_content_issue(mesh)
     if issue is not None:

@@ -36,6 +36,7 @@ from intercap.session.format import (
     CameraInfo,
     GroundTruth,
     ObjectInfo,
+    SupportInfo,
     decode_image,
     depth_format_issue,
     is_int,
@@ -103,6 +104,7 @@ class Session:
         problems: list[Problem],
         files: list[dict[str, dict[int, Path] | None]],
         has_ground_truth: bool,
+        supports: list[SupportInfo] = (),
     ):
         self.root = root
         self.fps = fps
@@ -112,6 +114,7 @@ class Session:
         self.contact_frames = contact_frames
         self.ground = ground
         self.body_model = body_model
+        self.supports = list(supports)  # fixed structures that can carry the body (physics)
         self.problems = problems  # non-fatal warnings; read_* append files they find unusable
         self._files = files  # per camera: kind -> {frame index: path} (None: folder absent)
         self._has_ground_truth = has_ground_truth
@@ -413,6 +416,8 @@ class Session:
             if o.contact_vertices is not None:
                 extra.append(f"{len(o.contact_vertices)} contact vertices")
             extra.append("initial pose given" if o.initial_pose is not None else "initial pose estimated")
+            if o.static:
+                extra.append("static (a support)")
             lines.append(f"  object: {o.name} ({o.mesh_path.name}; {', '.join(extra)})")
         if self.contact_frames is not None:
             lines.append("  contact frames (annotated): " + ", ".join(f"{a}-{b}" for a, b in self.contact_frames))
@@ -422,6 +427,9 @@ class Session:
         else:
             lines.append("  ground: estimated from the data")
         lines.append(f"  body model: {self.body_model}")
+        if self.supports:
+            lines.append("  supports: " + ", ".join(f"{s.name} ({s.mesh_path.name}{', grip' if s.grip else ''})"
+                                                    for s in self.supports))
         if self._has_ground_truth:
             gt = self.root / "ground_truth"
             have = [name.split(".")[0] for name in GT_FILES if (gt / name).is_file()]

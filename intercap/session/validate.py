@@ -23,6 +23,7 @@ from intercap.session.format import (
     parse_fps,
     parse_ground,
     parse_object,
+    parse_supports,
     read_calibration,
     read_session_yaml,
     scan_camera,
@@ -357,6 +358,7 @@ def inspect_session(root: Path, deep: bool) -> tuple[Session | None, list[Proble
     contact_frames = parse_contact_frames(cfg.get("contact_frames"), frame_ids, yaml_path, out)
     ground = parse_ground(cfg.get("ground"), yaml_path, out)
     body_model = parse_body(cfg.get("body"), yaml_path, out)
+    supports = parse_supports(root, cfg.get("supports"), yaml_path, out)
     has_gt = _check_ground_truth(root, None if frame_ids is None else len(frame_ids), has_object, out)
 
     bad: set = set()
@@ -377,6 +379,7 @@ def inspect_session(root: Path, deep: bool) -> tuple[Session | None, list[Proble
         contact_frames=contact_frames,
         ground=ground,
         body_model=body_model,
+        supports=supports,
         problems=[p for p in out if not p.fatal],
         files=files,
         has_ground_truth=has_gt,

@@ -509,7 +509,17 @@ def session_yaml(cfg: SynthConfig, spec, T: int, anim) -> dict:
                 start = None
         doc["contact_frames"] = ranges if frames.size else []
         doc["ground"] = {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]}
+        if anim.props:  # the furniture's meshes, as a user who measured them gives them
+            doc["supports"] = [{"name": name, "mesh": f"supports/{name}.ply"} for name in support_names(anim)]
     return doc
+
+
+def support_names(anim) -> list[str]:
+    """A unique file name per prop of the animation (table, stool, stool1, ...)."""
+    names = []
+    for name, _, _ in anim.props:
+        names.append(name if name not in names else f"{name}{sum(n.startswith(name) for n in names)}")
+    return names
 
 
 # ----------------------------------------------------------------------------- physics ground truth
@@ -726,6 +736,10 @@ def generate_session(cfg: SynthConfig, out_dir) -> Path:
 
     # static files
     write_json(out / "calibration.json", {"world": WORLD_NOTE, "cameras": [c.to_json() for c in cams]})
+    if cfg.annotate and anim.props:
+        (out / "supports").mkdir(exist_ok=True)
+        for name, mesh in zip(support_names(anim), statics[len(statics) - len(anim.props):]):
+            mesh.export(out / "supports" / f"{name}.ply")
     if spec is not None:
         spec.mesh.export(out / "object.ply")
         write_json(out / "object_contacts.json", {"vertices": [int(i) for i in spec.contact_vertices]})

@@ -15,6 +15,7 @@ import numpy as np
 import yaml
 
 from intercap.io.files import read_json, save_npy, save_npz, write_json
+from intercap.session.format import load_mesh_file
 
 # Ground-truth files that hold no world coordinates: copied as they are.
 _FRAME_FREE = ("body_faces.npy", "contact.npy")
@@ -96,6 +97,14 @@ def _write_moved_world(src: Path, dst: Path, T: np.ndarray) -> None:
         pose["R"] = (T[:3, :3] @ np.asarray(pose["R"], float)).tolist()
         pose["t"] = _moved_points(np.asarray(pose["t"], float), T).tolist()
     (dst / "session.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    for entry in cfg.get("supports") or []:  # support meshes are in world coordinates
+        mesh = load_mesh_file(src / entry["mesh"])
+        mesh.apply_transform(T)
+        target = dst / entry["mesh"]
+        if target.exists() or target.is_symlink():
+            target.unlink()  # a hard link of the source's file: never written through
+        target.parent.mkdir(parents=True, exist_ok=True)
+        mesh.export(target)
     if (src / "ground_truth").is_dir():
         _write_moved_ground_truth(src / "ground_truth", dst / "ground_truth", T)
 

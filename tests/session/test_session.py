@@ -222,6 +222,13 @@ def scale_T(c):
     c["T_world_from_cam"] = T.tolist()
 
 
+def add_support(root: Path, entry: dict, scale: float = 1.0, write: bool = True) -> None:
+    """A 0.4 m box seat (scaled by `scale`) as stool.ply and `supports: [entry]` in session.yaml."""
+    if write:
+        trimesh.creation.box(extents=(0.4 * scale, 0.4 * scale, 0.45 * scale)).export(root / "stool.ply")
+    edit_yaml(root, lambda c: setitem(c, "supports", [entry]))
+
+
 def corrupt_jpeg(root: Path) -> None:
     path = root / "cam0/color/000001.jpg"
     path.write_bytes(path.read_bytes()[:200])  # truncated
@@ -390,6 +397,20 @@ CASES = [
         ["shape"],
         True,
     ),
+    ("supports_not_a_list", lambda r: edit_yaml(r, lambda c: setitem(c, "supports", "stool.ply")), "session.yaml",
+     ["supports", "list"], True),
+    ("support_mesh_missing", lambda r: add_support(r, {"mesh": "stool.ply"}, write=False), "stool.ply",
+     ["support mesh missing"], True),
+    ("support_in_millimetres", lambda r: add_support(r, {"mesh": "stool.ply"}, scale=1000.0), "stool.ply",
+     ["millimetres"], True),
+    ("support_grip_not_bool", lambda r: add_support(r, {"mesh": "stool.ply", "grip": "yes"}), "session.yaml",
+     ["supports[0].grip", "true or false"], True),
+    ("support_outside_session", lambda r: add_support(r, {"mesh": "../stool.ply"}, write=False), "session.yaml",
+     ["supports[0].mesh", "outside"], True),
+    ("support_unknown_key", lambda r: add_support(r, {"mesh": "stool.ply", "colour": "red"}), "session.yaml",
+     ["supports[0].colour"], False),
+    ("object_static_not_bool", lambda r: edit_yaml(r, lambda c: setitem(c["object"], "static", "yes")), "session.yaml",
+     ["object.static", "true or false"], True),
     ("gt_faces_out_of_range", lambda r: write_gt(r, "body_faces.npy", np.array([[0, 1, 9999]])), "ground_truth/body_faces.npy", ["out of range"], True),
 ]
 
@@ -423,6 +444,17 @@ def test_validate_reports_bad_input(tmp_path: Path, case, mutate, path, words, f
     else:
         assert session is not None and not any(p.fatal for p in problems)
         Session.load(root)  # a warning never stops loading
+
+
+def test_supports_and_a_static_object_load(tiny_session: Path):
+    add_support(tiny_session, {"name": "stool", "mesh": "stool.ply"})
+    edit_yaml(tiny_session, lambda c: setitem(c["object"], "static", True))
+    session = Session.load(tiny_session)
+    assert [(s.name, s.grip, len(s.mesh.faces)) for s in session.supports] == [("stool", False, 12)]
+    assert session.object.static
+    assert "supports: stool (stool.ply)" in session.summary() and "static (a support)" in session.summary()
+    add_support(tiny_session, {"mesh": "stool.ply", "grip": True})
+    assert [(s.name, s.grip) for s in Session.load(tiny_session).supports] == [("stool", True)]
 
 
 def test_load_lists_every_fatal_problem_at_once(tiny_session: Path):

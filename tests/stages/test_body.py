@@ -509,7 +509,7 @@ def test_a_failed_fit_is_refitted_from_the_evidence(model, sample):
 
 def test_a_child_seen_by_one_camera_is_fitted_at_its_size(tmp_path, model):
     """One view of a standing child (1.1 m): 2D keypoints alone fit an adult further away just as
-    well; the torso measured in depth sizes the template (issue 11.2), so the fit lies on the child's
+    well; the torso measured in depth sizes the template, so the fit lies on the child's
     points at the child's stature."""
     from intercap.synth.generator import SynthConfig, generate_session
 

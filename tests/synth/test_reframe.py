@@ -32,3 +32,23 @@ def test_reexpress_refuses_non_rigid_and_existing_folders(tmp_path):
     (tmp_path / "b").mkdir()
     with pytest.raises(FileExistsError):
         reexpress(SAMPLE_SESSION, tmp_path / "b", np.eye(4))
+
+
+def test_support_meshes_move_with_the_world_and_the_source_keeps_its_own(tmp_path):
+    import shutil
+
+    import trimesh
+    import yaml
+
+    src = tmp_path / "src"
+    shutil.copytree(SAMPLE_SESSION, src)
+    trimesh.creation.box(extents=(0.4, 0.4, 0.45)).export(src / "stool.ply")
+    cfg = yaml.safe_load((src / "session.yaml").read_text())
+    cfg["supports"] = [{"name": "stool", "mesh": "stool.ply"}]
+    (src / "session.yaml").write_text(yaml.safe_dump(cfg))
+    before = (src / "stool.ply").read_bytes()
+    out, T = camera_as_world(src, tmp_path / "cam0")
+    moved = Session.load(out).supports[0].mesh
+    original = Session.load(src).supports[0].mesh
+    assert (src / "stool.ply").read_bytes() == before  # the copy's mesh is not a link written through
+    assert np.allclose(original.vertices @ T[:3, :3].T + T[:3, 3], moved.vertices, atol=1e-6)

@@ -320,7 +320,7 @@ def test_deterministic_npz_and_cli(tmp_path):
     assert (cfg.depth_sigma_base, cfg.depth_sigma_quad) == (0.001, 0.002)
 
 
-# ----------------------------------------------------------------------------- variety (issue 11.8)
+# ----------------------------------------------------------------------------- variety
 def test_outfits_vary_skin_and_clothes_deterministically():
     from intercap.synth.generator import BODY_COLOURS, SKIN_TONES, outfit
 

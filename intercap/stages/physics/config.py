@@ -19,6 +19,12 @@ class PhysicsConfig:
     cutoff_hz: float = 6.0  # the `butterworth` filter's cut-off (Hz; 4th order, forwards and backwards)
     foot_contact_m: float = 0.03  # a sole point this near (m) the floor can push on it
     object_ground_m: float = 0.02  # an object point this near (m) the floor can push on it
+    support_contact_m: float = 0.03  # a body point this near (m) a fixed support (seat, table, bar) can push on it
+    seat_contact_m: float = 0.06  # ... for buttocks and thighs: flesh a seat compresses, a model's skin does not
+    support_depth_m: float = 0.05  # ... or this deep inside it (the fitted body sinks into a soft seat)
+    static_object_m: float = 0.02  # an object whose tracked origin never strays this far (m) is a fixed support
+    static_object_deg: float = 5.0  # ... nor turns this far (deg)
+    torque_weight: float = 1e-2  # joint-torque prior that shares a load between contacts, (N m)^-2; 0: none
     object_weight: float = 10.0  # weight of the object's wrench equations against the body's (least squares)
     flight_min_frames: int = 8  # shortest free flight (object touching neither body nor floor), frames
     flight_max_residual_m: float = 0.05  # ... and a parabola under gravity within this (m, RMS) of its path

@@ -8,9 +8,11 @@ composes intercap.dynamics:
    de Leva segments carried by the body model's bones; object mass from session.yaml;
 2. kinematics (dynamics.kinematics): segment COMs and orientations, filtered and differentiated;
 3. Newton-Euler (dynamics.newton_euler): what each segment and the object need;
-4. contacts (dynamics.contact_forces): sole points within `physics.foot_contact_m` of the floor
-   (friction pyramids), a 6D wrench per hand touching the object, object points on the floor;
-   bounded least squares per frame; then joint torques per bone with the solved contacts;
+4. contacts (dynamics.contact_forces, dynamics.supports): sole points within `physics.foot_contact_m`
+   of the floor (friction pyramids), a 6D wrench per hand touching the object, object points on the
+   floor or on a fixed support, body points on the fixed supports (session.yaml `supports`, a static
+   object: seat, table, step; a 6D wrench per hand gripping one marked `grip`); bounded least squares
+   per frame with a joint-torque prior on the trunk and legs; then joint torques per bone;
 5. free flight (dynamics.flight): episodes where the object touches nothing, parabola fits.
 
 Writes OUT/physics/physics.npz (keys of docs/outputs.md, SI units, world frame; extra keys:
@@ -38,6 +40,7 @@ from intercap.dynamics import kinematics as kin
 from intercap.dynamics import mass as mass_model
 from intercap.dynamics import newton_euler as ne
 from intercap.dynamics import plausibility
+from intercap.dynamics import supports as sup
 from intercap.io.files import read_json, save_npz
 from intercap.session.format import positive_number
 
@@ -46,6 +49,11 @@ log = logging.getLogger(__name__)
 G = 9.81
 SOLE_POINTS = 4
 OBJECT_POINTS = 16
+# body regions that a fixed support (seat, table, bar, step) can carry, and points sampled per region
+SUPPORT_REGIONS = ("buttocks", "left_hand", "right_hand", "left_forearm", "right_forearm", "left_foot", "right_foot")
+SUPPORT_POINTS_PER_REGION = 6
+SEAT_REGIONS = ("buttocks", "back_of_thighs")  # pressed into a seat: reached from further (physics.seat_contact_m)
+SEAT_POINTS_PER_REGION = 16  # a seat carries the body over an area: enough points to span it
 
 
 class PhysicsError(ValueError):
@@ -106,6 +114,7 @@ class BodyTrack:
     soles: np.ndarray  # (T, 2, P, 3) sole points, left / right
     hands: np.ndarray  # (T, 2, 3) palm centres, left / right
     lowest: np.ndarray  # (T,) m, lowest vertex above the floor (negative: below)
+    support_points: np.ndarray  # (T, S, 3) body points a fixed support can carry (SUPPORT_REGIONS)
 
 
 def _anny_core(model):
@@ -120,7 +129,7 @@ def pose_body(model, params, ids: dict, point: np.ndarray, up: np.ndarray, chunk
     core = _anny_core(model)
     T = params.batch_size
     heads, rots, picks, lowest = [], [], [], []
-    order = np.concatenate([ids["landmarks"], ids["soles"].ravel(), *ids["hands"]])
+    order = np.concatenate([ids["landmarks"], ids["soles"].ravel(), *ids["hands"], ids["support"]])
     with torch.no_grad():
         for s in range(0, T, chunk):
             p = params[s:s + chunk]
@@ -136,12 +145,13 @@ def pose_body(model, params, ids: dict, point: np.ndarray, up: np.ndarray, chunk
     picks = np.concatenate(picks)
     L = len(ids["landmarks"])
     n_sole = ids["soles"].size
+    h0, h1 = L + n_sole, L + n_sole + len(ids["hands"][0])
+    h2 = h1 + len(ids["hands"][1])
     return BodyTrack(np.concatenate(heads), np.concatenate(rots),
                      {name: picks[:, k] for k, name in enumerate(ids["landmark_names"])},
                      picks[:, L:L + n_sole].reshape(T, *ids["soles"].shape, 3),
-                     np.stack([picks[:, L + n_sole:L + n_sole + len(ids["hands"][0])].mean(1),
-                               picks[:, L + n_sole + len(ids["hands"][0]):].mean(1)], 1),
-                     np.concatenate(lowest))
+                     np.stack([picks[:, h0:h1].mean(1), picks[:, h1:h2].mean(1)], 1),
+                     np.concatenate(lowest), picks[:, h2:])
 
 
 def ne_rot(axis_angle: torch.Tensor) -> torch.Tensor:
@@ -150,7 +160,7 @@ def ne_rot(axis_angle: torch.Tensor) -> torch.Tensor:
     return axis_angle_to_matrix(axis_angle.double())
 
 
-def body_landmarks(model, rest_vertices: np.ndarray) -> dict:
+def body_landmarks(model, rest_vertices: np.ndarray, rest_heads: np.ndarray) -> dict:
     """Vertex ids at rest (anny: z up, facing -y): head top, heels and toe tips, four sole corners
     per foot, the palm regions."""
     core = _anny_core(model)
@@ -168,7 +178,33 @@ def body_landmarks(model, rest_vertices: np.ndarray) -> dict:
         f, lat = forward[sole], rest_vertices[sole, 0]
         soles.append([int(sole[np.argmax(sign_f * f + sign_l * lat)]) for sign_f in (-1, 1) for sign_l in (-1, 1)])
     hands = [model.contact_regions[r].cpu().numpy() for r in ("left_hand", "right_hand")]
-    return {"landmark_names": out_names, "landmarks": np.array(ids), "soles": np.array(soles), "hands": hands}
+    from intercap.body_models.regions import farthest_point_subsample
+
+    support, support_region = [], []
+    regions = {r: model.contact_regions[r].cpu().numpy() for r in SUPPORT_REGIONS if r in model.contact_regions}
+    regions["back_of_thighs"] = back_of_thighs(model, rest_vertices, rest_heads, dominant)
+    for region, vids in regions.items():
+        if len(vids):
+            count = SEAT_POINTS_PER_REGION if region in SEAT_REGIONS else SUPPORT_POINTS_PER_REGION
+            picked = vids[farthest_point_subsample(rest_vertices[vids], count)]
+            support += picked.tolist()
+            support_region += [region] * len(picked)
+    return {"landmark_names": out_names, "landmarks": np.array(ids), "soles": np.array(soles), "hands": hands,
+            "support": np.array(support, np.int64), "support_region": np.array(support_region),
+            "support_bone": dominant[np.array(support, np.int64)]}
+
+
+def back_of_thighs(model, rest_vertices: np.ndarray, rest_heads: np.ndarray, dominant: np.ndarray) -> np.ndarray:
+    """Vertex ids of the thighs' undersides when seated (at rest, z up facing -y: the back of the thighs
+    from above the knees to mid-thigh), which a seat carries besides the buttocks."""
+    from intercap.body_models.regions import vertex_normals
+
+    names = list(model.joint_names)
+    thigh = np.isin(dominant, [i for i, b in enumerate(names) if b.startswith("upperleg")])
+    hip, knee = rest_heads[names.index("upperleg01.L"), 2], rest_heads[names.index("lowerleg01.L"), 2]
+    backward = vertex_normals(rest_vertices, model.faces.numpy()) @ np.array([0.0, 1.0, 0.0]) > 0.3
+    z = rest_vertices[:, 2]
+    return np.flatnonzero(thigh & backward & (z > knee + 0.04) & (z <= (hip + knee) / 2))
 
 
 # -- the analysis ------------------------------------------------------------------------------
@@ -267,6 +303,9 @@ class ObjectTrack:
     points: np.ndarray | None = None  # (T, Q, 3) subsampled surface points
     ground_active: np.ndarray | None = None  # (T, Q) bool: point on the floor
     hand_active: np.ndarray | None = None  # (T, 2) bool
+    support_active: np.ndarray | None = None  # (T, Q) bool: point resting on a fixed support (a table top)
+    static: bool = False  # marked static or never moved: a fixed support, its own balance not solved
+    mesh_world: object = None  # the static object's mesh where it stands (trimesh)
 
 
 def track_object(out_dir: Path, session, T: int, point, up, pc, fps: float, filt: dict,
@@ -300,6 +339,19 @@ def track_object(out_dir: Path, session, T: int, point, up, pc, fps: float, filt
     track.ground_active = np.nan_to_num(heights, nan=np.inf) < pc.object_ground_m
     track.on_ground = track.ground_active.any(1)
     track.hand_active = hand_contacts(out_dir, T) & obj_valid[:, None]
+    # furniture: marked static, or never moves and stands on the floor or is never touched (a box held
+    # still in the air never moves either, but the hands carry it)
+    track.static = obj_info.static or (
+        sup.is_static(R_obj, t_obj, obj_valid, pc.static_object_m, pc.static_object_deg)
+        and (track.on_ground[obj_valid].all() or not track.hand_active.any()))
+    if track.static:  # furniture: it carries the body, the floor carries it
+        k = np.flatnonzero(obj_valid)[obj_valid.sum() // 2] if obj_valid.any() else None
+        if k is None:
+            track.static = False
+        else:
+            track.mesh_world = mesh.copy().apply_transform(_pose_matrix(R_obj[k], t_obj[k]))
+            track.mass_source += "; static: a support"
+            return track
     if np.isfinite(track.mass) and obj_valid.any():
         Ro, w_o, al_o = kin.quaternion_derivatives(kin.fill_gaps(R_obj, obj_valid), fps, **filt)
         _, _, acc_o = kin.derivatives(kin.fill_gaps(centres, obj_valid), fps, **filt)
@@ -315,6 +367,86 @@ def track_object(out_dir: Path, session, T: int, point, up, pc, fps: float, filt
     return track
 
 
+def _pose_matrix(R, t) -> np.ndarray:
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, t
+    return M
+
+
+def fixed_supports(session, obj: ObjectTrack, pc) -> list[tuple[str, object, bool]]:
+    """(name, world mesh, grip) of every fixed support: session.yaml's `supports` and a static object."""
+    fixed = [(s.name, s.mesh, s.grip) for s in getattr(session, "supports", ())]
+    if obj.static and obj.mesh_world is not None:
+        fixed.append((session.object.name, obj.mesh_world, False))
+    return fixed
+
+
+def support_contacts(fixed: list, track: BodyTrack, ids: dict, pc) -> dict:
+    """solve_contacts' support keywords: body points on each support (pushes within friction cones),
+    hands on a support that can be gripped (a free wrench instead); {} without supports."""
+    if not fixed or not track.support_points.shape[1]:
+        return {}
+    reach = np.where(np.isin(ids["support_region"], SEAT_REGIONS), pc.seat_contact_m, pc.support_contact_m)
+    active, normals, which = sup.support_contacts([m for _, m, _ in fixed], track.support_points, reach,
+                                                  pc.support_depth_m)
+    grippable = [k for k, (_, _, grip) in enumerate(fixed) if grip]
+    grip = np.zeros((len(active), 2), bool)
+    for h, region in enumerate(("left_hand", "right_hand")):
+        on = ids["support_region"] == region
+        grip[:, h] = np.isin(which[:, on], grippable).any(1)
+        active[:, on] &= ~grip[:, h:h + 1]  # a gripping hand acts through its wrench
+    return dict(support_points=track.support_points, support_normals=normals, support_active=active,
+                grip_active=grip)
+
+
+def object_on_supports(obj: ObjectTrack, fixed: list, up, pc) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """(object points resting on the floor or on a fixed support (T, Q) bool, the normal of what each
+    rests on (T, Q, 3)); the floor's alone (normals None) without supports or object forces."""
+    if obj.wrench is None or obj.points is None or not fixed:
+        return obj.ground_active, None
+    on_support, normals, _ = sup.support_contacts([m for _, m, _ in fixed], np.nan_to_num(obj.points, nan=1e6),
+                                                  pc.object_ground_m, pc.object_ground_m)
+    floor = obj.ground_active
+    normals = np.where(floor[..., None], up, normals)
+    obj.support_active = on_support & ~floor
+    return floor | on_support, normals
+
+
+ARM_SEGMENTS = ("upper_arm", "forearm", "hand")
+FLAGGED_FOOT_M = 0.10  # a foot flagged in contact by measured timing pushes through its sole points this near the floor
+
+
+def timed_contacts(timing: dict, foot_active, soles, point, up, contacts: dict, T: int) -> tuple[np.ndarray, dict]:
+    """(foot_active (T, 2, P), support keywords) with measured contact timing (`analyse`); a kind of
+    contact the timing leaves out keeps its detection."""
+    if "feet" in timing:
+        feet = np.asarray(timing["feet"], bool)
+        height = (soles - point) @ up
+        lowest = height <= height.min(2, keepdims=True) + 0.01
+        foot_active = ((height < FLAGGED_FOOT_M) | lowest) & feet[:, :, None]  # at least its lowest points
+    grip = np.asarray(timing.get("grip", np.zeros((T, 2), bool)), bool)
+    contacts = dict(contacts)
+    contacts["grip_active"] = grip | contacts.get("grip_active", np.zeros((T, 2), bool))
+    return foot_active, contacts
+
+
+def torque_prior(pc, segments, parents, bone_index: dict, needs: BodyNeeds, track: BodyTrack, ids: dict):
+    """The joint-torque prior of solve_contacts (None when physics.torque_weight is 0): the torques of
+    the joints carrying a segment, without contacts, and which contacts each carries."""
+    if pc.torque_weight <= 0:
+        return None
+    # the trunk's and legs' joints (the root's wrench is the balance itself): the arms' own effort left
+    # out, or the prior would rest the arms' weight on whatever the hands touch
+    trunk_and_legs = np.array([not str(n).startswith(ARM_SEGMENTS) for n in segments.names])
+    joints = np.unique(segments.carrier[(segments.carrier > 0) & trunk_and_legs])
+    _, torque = ne.joint_wrenches(parents, segments.carrier, needs.force, needs.torque, _td(needs.com), needs.joints)
+    P = track.soles.shape[2]
+    bones = contact_bones(bone_index, P)
+    return cf.TorquePrior(track.heads[:, joints], torque.numpy()[:, joints],
+                          sup.carried_by(parents, joints, bones[2 * P:]), sup.carried_by(parents, joints, bones[:2 * P]),
+                          sup.carried_by(parents, joints, ids["support_bone"]), pc.torque_weight)
+
+
 def centre_of_pressure(foot_point_force: np.ndarray, soles: np.ndarray, point, up) -> np.ndarray:
     """(T, 2, 3) each foot's centre of pressure on the floor; NaN where the foot carries nothing."""
     fn = foot_point_force @ up  # (T, 2, P)
@@ -324,35 +456,55 @@ def centre_of_pressure(foot_point_force: np.ndarray, soles: np.ndarray, point, u
     return cop - ((cop - point) @ up)[..., None] * up  # on the floor
 
 
-def joint_torques(sol, segments, parents, bone_index: dict, needs: BodyNeeds, soles, hands) -> np.ndarray:
-    """(T, J, 3) joint torques with the solved contacts: soles on the foot bones, hand reactions on the wrists."""
+def contact_bones(bone_index: dict, P: int, support_bones=()) -> list[int]:
+    """The bone each contact acts on, in joint_torques' order: sole points, hands, support points."""
+    return ([bone_index["foot.L"]] * P + [bone_index["foot.R"]] * P + [bone_index["wrist.L"], bone_index["wrist.R"]]
+            + [int(b) for b in support_bones])
+
+
+def joint_torques(sol, segments, parents, bone_index: dict, needs: BodyNeeds, soles, hands, support_points=None,
+                  support_bones=()) -> np.ndarray:
+    """(T, J, 3) joint torques with the solved contacts: soles on the foot bones, hand reactions on the
+    wrists, fixed supports on the bones of the points they carry."""
     T, P = soles.shape[0], soles.shape[2]
-    ext_bone = [bone_index["foot.L"]] * P + [bone_index["foot.R"]] * P + [bone_index["wrist.L"], bone_index["wrist.R"]]
+    with_supports = sol.support_point_force is not None
+    ext_bone = contact_bones(bone_index, P, support_bones if with_supports else ())
     hand_f = np.nan_to_num(sol.hand_force)
     hand_t = np.nan_to_num(sol.hand_torque)
-    ext_f = np.concatenate([np.nan_to_num(sol.foot_point_force).reshape(T, 2 * P, 3), -hand_f], 1)
-    ext_t = np.concatenate([np.zeros((T, 2 * P, 3)), -hand_t], 1)
-    ext_p = np.concatenate([soles.reshape(T, 2 * P, 3), hands], 1)
+    sup_f = [np.nan_to_num(sol.support_point_force)] if with_supports else []
+    ext_f = np.concatenate([np.nan_to_num(sol.foot_point_force).reshape(T, 2 * P, 3), -hand_f, *sup_f], 1)
+    ext_t = np.zeros_like(ext_f)
+    ext_t[:, 2 * P:2 * P + 2] = -hand_t
+    ext_p = np.concatenate([soles.reshape(T, 2 * P, 3), hands, *([support_points] if with_supports else [])], 1)
     _, joint_torque = ne.joint_wrenches(parents, segments.carrier, needs.force, needs.torque, _td(needs.com),
                                         needs.joints, ext_bone, _td(ext_f), _td(ext_t), _td(ext_p))
     return joint_torque.numpy()
 
 
-def feet_load(sol, body_wrench: np.ndarray, hands: np.ndarray, root: np.ndarray) -> np.ndarray:
-    """(T, 6) what the feet carry about the root: the body's needs plus what the hands push on the object."""
+def feet_load(sol, body_wrench: np.ndarray, hands: np.ndarray, root: np.ndarray,
+              support_points: np.ndarray | None = None) -> np.ndarray:
+    """(T, 6) what the feet carry about the root: the body's needs plus what the hands push on the object,
+    less what fixed supports carry."""
     hand_f = np.nan_to_num(sol.hand_force)
     hand_t = np.nan_to_num(sol.hand_torque)
     arm = hands - root[:, None]
     feet_need = body_wrench.copy()
     feet_need[:, :3] += hand_f.sum(1)
     feet_need[:, 3:] += (np.cross(arm, hand_f) + hand_t).sum(1)
+    if sol.support_point_force is not None:  # what fixed supports carry, the feet do not
+        f = np.nan_to_num(sol.support_point_force)
+        feet_need[:, :3] -= f.sum(1)
+        feet_need[:, 3:] -= np.cross(support_points - root[:, None], f).sum(1)
     return feet_need
 
 
-def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
+def analyse(out_dir, session, cfg=None, progress: bool = False, contact_timing: dict | None = None) -> dict:
     """Forces, torques and flight of a finished results folder; writes OUT/physics/physics.npz and
     returns the figures (metrics.json's `physics` entry). PhysicsError with a clear message when a
-    result, the floor or the body mass is missing."""
+    result, the floor or the body mass is missing. contact_timing: measured contact timing that
+    replaces the detected (a benchmark's force sensors): {"feet": (T, 2) bool, a foot carries only
+    where flagged, then through its sole points within FLAGGED_FOOT_M of the floor; "grip": (T, 2)
+    bool, the hand grips a fixed structure}."""
     from intercap.config import Config
 
     cfg = cfg or Config()
@@ -368,7 +520,7 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
     rest_vertices, rest_bones = rest_body(model, shape)
     mass, body_source = body_mass(session, pc, model, rest_vertices)
     female = female_share(pc, model, shape)
-    ids = body_landmarks(model, rest_vertices)
+    ids = body_landmarks(model, rest_vertices, rest_bones[:, :3, 3])
     rest_landmarks = {n: rest_vertices[i] for n, i in zip(ids["landmark_names"], ids["landmarks"])}
     segments = mass_model.build_segments(list(model.joint_names), rest_bones[:, :3, 3], rest_bones[:, :3, :3],
                                          rest_landmarks, mass, female, np.array([1.0, 0, 0]))
@@ -388,24 +540,41 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
     soles = track.soles  # (T, 2, P, 3)
     foot_active = ((soles - point) @ up) < pc.foot_contact_m
     needs.wrench[~body_valid] = np.nan
+    fixed = fixed_supports(session, obj, pc)
+    contacts = support_contacts(fixed, track, ids, pc)
+    if contact_timing is not None:
+        foot_active, contacts = timed_contacts(contact_timing, foot_active, soles, point, up, contacts, T)
+    prior = torque_prior(pc, segments, parents, bone_index, needs, track, ids)
+    object_active, object_normals = object_on_supports(obj, fixed, up, pc)
     sol = cf.solve_contacts(needs.wrench, root, soles, foot_active, up, pc.mu, obj.wrench, obj.com_filled,
                             track.hands, obj.hand_active if obj.wrench is not None else None, obj.points,
-                            obj.ground_active, edges=pc.friction_edges, object_weight=pc.object_weight)
+                            object_active, edges=pc.friction_edges, object_weight=pc.object_weight,
+                            torque_prior=prior, object_normals=object_normals, **contacts)
     foot_force = sol.foot_point_force.sum(2)  # (T, 2, 3)
     cop = centre_of_pressure(sol.foot_point_force, soles, point, up)
-    joint_torque = joint_torques(sol, segments, parents, bone_index, needs, soles, track.hands)
+    joint_torque = joint_torques(sol, segments, parents, bone_index, needs, soles, track.hands,
+                                 track.support_points, ids["support_bone"])
     valid = body_valid & np.isfinite(sol.body_residual).all(1)
     joint_torque[~valid] = np.nan
 
     object_known = obj.wrench is not None
-    hand_force = np.where(object_known, sol.hand_force, np.nan)
-    hand_torque = np.where(object_known, sol.hand_torque, np.nan)
+    gripping = contacts.get("grip_active", np.zeros((T, 2), bool))
+    hands_known = (object_known | gripping.any(1))[:, None, None]
+    hand_force = np.where(hands_known, sol.hand_force, np.nan)
+    hand_torque = np.where(hands_known, sol.hand_torque, np.nan)
     object_ground = sol.object_ground_force.sum(1) if object_known else np.full((T, 3), np.nan)
-    flight = flight_analysis(obj.centres, contact_labels(out_dir, T) | obj.on_ground, up, fps, pc.flight_min_frames,
+    resting = obj.on_ground | (obj.support_active.any(1) if obj.support_active is not None else False)
+    flight = flight_analysis(obj.centres, contact_labels(out_dir, T) | resting, up, fps, pc.flight_min_frames,
                              pc.flight_max_residual_m) \
-        if obj.present else no_flight()
-    per_frame = plausibility_arrays(feet_load(sol, needs.wrench, track.hands, root), root, soles, foot_active, up,
-                                    pc, fps, track.lowest, point, obj.points, obj.valid)
+        if obj.present and not obj.static else no_flight()
+    per_frame = plausibility_arrays(feet_load(sol, needs.wrench, track.hands, root, track.support_points), root,
+                                    soles, foot_active, up, pc, fps, track.lowest, point, obj.points, obj.valid)
+    S = track.support_points.shape[1]
+    support_force = sol.support_point_force if sol.support_point_force is not None else np.zeros((T, S, 3))
+    per_frame.update(support_force=support_force, support_points=track.support_points,
+                     support_contact=contacts.get("support_active", np.zeros((T, S), bool)),
+                     support_region=ids["support_region"], hand_grip=gripping,
+                     support_names=np.array([name for name, _, _ in fixed], dtype=str))
     arrays = dict(frame_ids=np.asarray(session.frame_ids), gravity=gravity, body_mass_kg=np.float64(mass),
                   object_mass_kg=np.float64(obj.mass), hand_force=hand_force, hand_torque=hand_torque,
                   hand_point=track.hands, foot_force=foot_force, foot_cop=cop, object_ground_force=object_ground,
@@ -414,8 +583,8 @@ def analyse(out_dir, session, cfg=None, progress: bool = False) -> dict:
                   object_residual_force=sol.object_residual[:, :3], object_residual_torque=sol.object_residual[:, 3:],
                   valid=valid, flight_episodes=flight["episodes"], flight_acceleration=flight["acceleration"],
                   flight_gravity_angle_deg=flight["gravity_angle_deg"], flight_runs_held=flight["held"],
-                  foot_contact=foot_active, foot_points=soles,
-                  hand_contact=np.zeros((T, 2), bool) if obj.hand_active is None else obj.hand_active,
+                  foot_contact=foot_active, foot_points=soles, foot_point_force=sol.foot_point_force,
+                  hand_contact=(np.zeros((T, 2), bool) if obj.hand_active is None or obj.static else obj.hand_active),
                   mu=np.float64(pc.mu), body_mass_source=np.array(body_source),
                   object_mass_source=np.array(obj.mass_source), **per_frame)
     save_npz(out_dir / "physics" / "physics.npz", **arrays)
@@ -433,10 +602,14 @@ def physics_figures(arrays: dict, mass: float, body_source: str, obj: ObjectTrac
         "body_mass_kg": mass, "body_mass_source": body_source,
         "object_mass_kg": None if not np.isfinite(obj.mass) else obj.mass, "object_mass_source": obj.mass_source,
         "object_forces": ("solved" if object_known else "no object" if not obj.present
+                          else "static: a support" if obj.static
                           else "skipped: object tracked in no frame" if not obj.valid.any()
                           else f"skipped: object mass {obj.mass_source}"),
         "ground_source": ground_source, "frames_valid": int(valid.sum()),
+        "supports": [str(n) for n in arrays["support_names"]],
     })
+    if len(arrays["support_names"]) and valid.any():
+        figures["support_force_mean_n"] = float(np.linalg.norm(arrays["support_force"][valid].sum(1), axis=-1).mean())
     if valid.any():
         figures["ground_reaction_mean_n"] = float(np.linalg.norm(foot_force[valid].sum(1), axis=-1).mean())
         if object_known:

@@ -80,11 +80,20 @@ class TorquePrior:
 
 
 def friction_pyramids(normals: np.ndarray, mu: float, edges: int = 4) -> np.ndarray:
-    """(..., 3, E) friction_pyramid of each normal (..., 3)."""
-    flat = np.asarray(normals, np.float64).reshape(-1, 3)
-    out = np.stack([friction_pyramid(n, mu, edges) if np.isfinite(n).all() and np.linalg.norm(n) > 0
-                    else np.zeros((3, edges)) for n in flat])
-    return out.reshape(*np.shape(normals)[:-1], 3, edges)
+    """(..., 3, E) friction_pyramid of each normal (..., 3), all at once; zero for a zero or NaN normal."""
+    if mu < 0:
+        raise ValueError(f"physics.mu must be non-negative, got {mu}")
+    n = np.asarray(normals, np.float64)
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    ok = np.isfinite(n).all(-1, keepdims=True) & (length > 0)
+    n = np.where(ok, n / np.where(ok, length, 1.0), [0.0, 0.0, 1.0])
+    a = np.where(np.abs(n[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])  # as friction_pyramid picks it
+    t1 = np.cross(n, a)
+    t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
+    t2 = np.cross(n, t1)
+    angles = 2 * np.pi * np.arange(edges) / edges
+    d = np.cos(angles)[:, None] * t1[..., None, :] + np.sin(angles)[:, None] * t2[..., None, :]  # (..., E, 3)
+    return np.where(ok[..., None], np.swapaxes(n[..., None, :] + mu * d, -1, -2), 0.0)
 
 
 def solve_contacts(body_wrench, root, foot_points, foot_active, normal, mu, object_wrench=None, object_com=None,

@@ -95,3 +95,14 @@ def test_the_torque_prior_puts_a_seated_weight_through_the_seat():
     seat_effort = effort.support_point_force[0, :, 2].sum() / W
     assert 0.2 < seat_plain < 0.8  # shared by the regulariser alone
     assert seat_effort > 0.95  # pushing through the feet would load the knee
+
+
+def test_pyramids_of_many_normals_are_each_normals_pyramid():
+    rng = np.random.default_rng(1)
+    normals = rng.normal(size=(5, 7, 3))
+    normals[0, 0], normals[0, 1], normals[1, 2] = np.nan, 0.0, [0.95, 0.1, 0.1]  # unusable; x-most normal
+    many = cf.friction_pyramids(normals, 0.5, 6)
+    assert many.shape == (5, 7, 3, 6)
+    assert np.all(many[0, :2] == 0)
+    for i, j in [(1, 2), (2, 3), (4, 6)]:
+        assert np.allclose(many[i, j], cf.friction_pyramid(normals[i, j], 0.5, 6))

@@ -133,16 +133,18 @@ def truth_as_results(session: Path, out: Path, hands) -> Path:
     return out
 
 
-def gt_motion_results(script: str, root: Path, fps: float = 30.0, ik_iters: int = 30) -> tuple[Path, Path]:
+def gt_motion_results(script: str, root: Path, fps: float = 30.0, ik_iters: int = 30,
+                      annotate: bool = False) -> tuple[Path, Path]:
     """A tiny session of a generator script (one 64x48 camera: the motion is what matters) and a
-    results folder holding its ground-truth motion as if fitted (`truth_as_results`)."""
+    results folder holding its ground-truth motion as if fitted (`truth_as_results`); `annotate`:
+    the session's annotations too (its furniture as session.yaml `supports`)."""
     from intercap.synth.generator import SynthConfig, generate_session
     from intercap.synth.motions import get_script
 
     session = root / script
     if not (session / "ground_truth" / "body_params.npz").exists():
         cfg = SynthConfig(script=script, fps=fps, cameras=1, width=64, height=48, keypoints=False, masks=False,
-                          walls=False, ik_iters=ik_iters, quiet=True)
+                          walls=False, ik_iters=ik_iters, quiet=True, annotate=annotate)
         generate_session(cfg, session)
     return session, truth_as_results(session, root / f"{script}_out", get_script(script).hands)
 
@@ -196,16 +198,10 @@ def bench_supports(root: Path, fps: float = 15.0, cfg=None) -> dict:
     table untouched, and the box's unexplained force there (its weight's %)."""
     from intercap.session import Session
     from intercap.stages.physics import stage as physics
-    from intercap.synth.generator import SynthConfig, generate_session
-    from intercap.synth.motions import get_script
 
     out = {}
     for script in ("sit_stand", "table_lift"):
-        session = root / f"{script}_supports"
-        if not (session / "ground_truth" / "body_params.npz").exists():
-            generate_session(SynthConfig(script=script, fps=fps, cameras=1, width=64, height=48, keypoints=False,
-                                         masks=False, walls=False, ik_iters=30, quiet=True, annotate=True), session)
-        results = truth_as_results(session, root / f"{script}_supports_out", get_script(script).hands)
+        session, results = gt_motion_results(script, root / "supports", fps, annotate=True)
         tick = time.perf_counter()
         figures = physics.analyse(results, Session.load(session), cfg)
         seconds = (time.perf_counter() - tick) / max(figures["frames_valid"], 1)

@@ -25,16 +25,7 @@ from scipy.optimize import lsq_linear
 
 def friction_pyramid(normal: np.ndarray, mu: float, edges: int = 4) -> np.ndarray:
     """(3, E) edge directions n + mu d_e of the pyramid inscribed in the friction cone (|f_t| <= mu f_n)."""
-    if mu < 0:
-        raise ValueError(f"physics.mu must be non-negative, got {mu}")
-    n = np.asarray(normal, np.float64) / np.linalg.norm(normal)
-    a = np.array([1.0, 0, 0]) if abs(n[0]) < 0.9 else np.array([0, 1.0, 0])
-    t1 = np.cross(n, a)
-    t1 /= np.linalg.norm(t1)
-    t2 = np.cross(n, t1)
-    angles = 2 * np.pi * np.arange(edges) / edges
-    d = np.cos(angles)[:, None] * t1 + np.sin(angles)[:, None] * t2  # (E, 3)
-    return (n + mu * d).T
+    return friction_pyramids(normal, mu, edges)
 
 
 def skew(v: np.ndarray) -> np.ndarray:
@@ -46,9 +37,9 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def wrench_map(points: np.ndarray, about: np.ndarray, directions: np.ndarray) -> np.ndarray:
     """(T, N, 6, K): the wrench (force; torque about `about` (T, 3)) of unit amounts along
-    `directions` (3, K) applied at points (T, N, 3)."""
+    `directions` (3, K), or one set per point (T, N, 3, K), applied at points (T, N, 3)."""
     arm = skew(points - about[:, None])  # (T, N, 3, 3)
-    top = np.broadcast_to(directions, (*points.shape[:2], 3, directions.shape[1]))
+    top = np.broadcast_to(directions, (*points.shape[:2], 3, directions.shape[-1]))
     return np.concatenate([top, arm @ directions], -2)
 
 
@@ -80,14 +71,15 @@ class TorquePrior:
 
 
 def friction_pyramids(normals: np.ndarray, mu: float, edges: int = 4) -> np.ndarray:
-    """(..., 3, E) friction_pyramid of each normal (..., 3), all at once; zero for a zero or NaN normal."""
+    """(..., 3, E) friction_pyramid of each normal (..., 3), all at once; zero for a zero or NaN normal.
+    The tangents: t1 = n x (x axis, or y where n is nearly along x), t2 = n x t1."""
     if mu < 0:
         raise ValueError(f"physics.mu must be non-negative, got {mu}")
     n = np.asarray(normals, np.float64)
     length = np.linalg.norm(n, axis=-1, keepdims=True)
     ok = np.isfinite(n).all(-1, keepdims=True) & (length > 0)
     n = np.where(ok, n / np.where(ok, length, 1.0), [0.0, 0.0, 1.0])
-    a = np.where(np.abs(n[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])  # as friction_pyramid picks it
+    a = np.where(np.abs(n[..., :1]) < 0.9, [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
     t1 = np.cross(n, a)
     t1 /= np.linalg.norm(t1, axis=-1, keepdims=True)
     t2 = np.cross(n, t1)
@@ -137,11 +129,9 @@ def solve_contacts(body_wrench, root, foot_points, foot_active, normal, mu, obje
         on_object = _hand_map(hand_points, object_com) * (~grips)[:, :, None, None]  # a gripping hand is not on it
         A[:, 6:12, :12] = on_object.transpose(0, 2, 1, 3).reshape(T, 6, 12) * object_weight
         if Q:
-            if object_normals is None:
-                A_obj = wrench_map(object_points, object_com, D)  # (T, Q, 6, E)
-            else:
-                D_obj = friction_pyramids(object_normals, mu, edges)  # (T, Q, 3, E)
-                A_obj = np.concatenate([D_obj, skew(object_points - object_com[:, None]) @ D_obj], -2)
+            D_obj = (np.broadcast_to(D, (T, Q, 3, E)) if object_normals is None
+                     else friction_pyramids(object_normals, mu, edges))  # (T, Q, 3, E)
+            A_obj = wrench_map(object_points, object_com, D_obj)  # (T, Q, 6, E)
             A[:, 6:12, c_obj:c_sup] = A_obj.transpose(0, 2, 1, 3).reshape(T, 6, Q * E) * object_weight
             active[:, c_obj:c_sup] = np.repeat(np.asarray(object_active, bool), E, axis=1)
         b[:, 6:12] = np.asarray(object_wrench, np.float64) * object_weight
@@ -150,8 +140,7 @@ def solve_contacts(body_wrench, root, foot_points, foot_active, normal, mu, obje
     D_sup = None
     if S:
         D_sup = friction_pyramids(support_normals, mu, edges)  # (T, S, 3, E)
-        arm = skew(support_points - root[:, None])  # (T, S, 3, 3)
-        A_sup = np.concatenate([D_sup, arm @ D_sup], -2)  # (T, S, 6, E)
+        A_sup = wrench_map(support_points, root, D_sup)  # (T, S, 6, E)
         A[:, :6, c_sup:] = A_sup.transpose(0, 2, 1, 3).reshape(T, 6, S * E)
         active[:, c_sup:] = np.repeat(np.asarray(support_active, bool), E, axis=1)
     if torque_prior is not None:
@@ -179,10 +168,7 @@ def solve_contacts(body_wrench, root, foot_points, foot_active, normal, mu, obje
     resid[~good] = np.nan
     hands = x[:, :12].reshape(T, 2, 6)
     feet = np.einsum("ie,tpe->tpi", D, x[:, c_feet:c_obj].reshape(T, 2 * P, E)).reshape(T, 2, P, 3)
-    if object_normals is not None and Q:
-        obj = np.einsum("tqie,tqe->tqi", D_obj, x[:, c_obj:c_sup].reshape(T, Q, E))
-    else:
-        obj = np.einsum("ie,tqe->tqi", D, x[:, c_obj:c_sup].reshape(T, Q, E))
+    obj = np.einsum("tqie,tqe->tqi", D_obj, x[:, c_obj:c_sup].reshape(T, Q, E)) if Q else np.zeros((T, 0, 3))
     sup = np.einsum("tsie,tse->tsi", D_sup, x[:, c_sup:].reshape(T, S, E)) if S else None
     return ContactSolution(hands[..., :3], hands[..., 3:], feet, obj, resid[:, :6],
                            resid[:, 6:] if has_object else np.full((T, 6), np.nan), sup)

@@ -104,5 +104,8 @@ def test_pyramids_of_many_normals_are_each_normals_pyramid():
     many = cf.friction_pyramids(normals, 0.5, 6)
     assert many.shape == (5, 7, 3, 6)
     assert np.all(many[0, :2] == 0)
-    for i, j in [(1, 2), (2, 3), (4, 6)]:
-        assert np.allclose(many[i, j], cf.friction_pyramid(normals[i, j], 0.5, 6))
+    for i, j in [(1, 2), (2, 3), (4, 6)]:  # every edge on the cone round its own normal
+        n = normals[i, j] / np.linalg.norm(normals[i, j])
+        fn = many[i, j].T @ n
+        ft = np.linalg.norm(many[i, j].T - fn[:, None] * n, axis=1)
+        assert np.allclose(fn, 1.0) and np.allclose(ft, 0.5)

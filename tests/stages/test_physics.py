@@ -131,13 +131,9 @@ def test_a_seated_body_is_carried_by_the_seat(tmp_path):
     the feet the rest; standing, the stool carries nothing."""
     import json
 
-    from intercap.synth.generator import SynthConfig, generate_session
-    from tools.bench_physics import truth_as_results
+    from tools.bench_physics import gt_motion_results
 
-    session = generate_session(SynthConfig(script="sit_stand", fps=10, cameras=1, width=64, height=48, keypoints=False,
-                                           masks=False, walls=False, ik_iters=30, quiet=True, annotate=True),
-                               tmp_path / "sit")
-    out = truth_as_results(session, tmp_path / "out", ())
+    session, out = gt_motion_results("sit_stand", tmp_path, fps=10, annotate=True)
     figures = physics.analyse(out, Session.load(session))
     assert figures["supports"] == ["stool"]
     z = np.load(out / "physics" / "physics.npz")
@@ -160,14 +156,9 @@ def test_an_object_resting_on_a_table_is_carried_by_the_table(tmp_path):
     """Generator `table_lift` (a box resting on a table, lifted, put back; the furniture given as supports),
     its true motion analysed: while the box rests on the table untouched, the table carries its weight and
     nothing is left unexplained."""
-    from intercap.synth.generator import SynthConfig, generate_session
-    from intercap.synth.motions import get_script
-    from tools.bench_physics import truth_as_results
+    from tools.bench_physics import gt_motion_results
 
-    session = generate_session(SynthConfig(script="table_lift", fps=10, cameras=1, width=64, height=48,
-                                           keypoints=False, masks=False, walls=False, ik_iters=30, quiet=True,
-                                           annotate=True), tmp_path / "table")
-    out = truth_as_results(session, tmp_path / "out", get_script("table_lift").hands)
+    session, out = gt_motion_results("table_lift", tmp_path, fps=10, annotate=True)
     physics.analyse(out, Session.load(session))
     z = np.load(out / "physics" / "physics.npz")
     weight = float(z["object_mass_kg"]) * G

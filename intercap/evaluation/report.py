@@ -978,6 +978,8 @@ def _contact_section(out_dir, stages, frames, fids, mesh, rcfg) -> str:
                 rows[f"source: {key}"] = contact[key]
         if "held" in contact and np.asarray(contact["held"]).any():  # `contact.held_frames`
             rows["source: held (no fall)"] = contact["held"]
+        if "carried" in contact and np.asarray(contact["carried"]).any():  # `contact.carried_gaps`
+            rows["source: carried (short gap)"] = contact["carried"]
         parts.append(_raster("Contact per frame and body region", rows, fids))
         dist = contact.get("region_distance_m")
         if dist is not None and dist.size:

@@ -110,6 +110,9 @@ PERSON_BONES = (
     (9, 10, 0.16), (12, 13, 0.16), (10, 11, 0.12), (13, 14, 0.12),
 )
 
+HEAD_KEYPOINTS = (0, 15, 16, 17, 18)  # BODY_25 nose, eyes and ears: the face, whichever of them a view sees
+CROWN = 0.6  # the top of the head lies beyond the face by this share of the neck-to-face line
+
 
 def keypoint_depth(depth: np.ndarray, xy: np.ndarray, radius_px: int) -> float:
     """The person's depth at one keypoint (metres, 0 when unknown): the near third of the valid depths
@@ -124,8 +127,9 @@ def keypoint_depth(depth: np.ndarray, xy: np.ndarray, radius_px: int) -> float:
 def person_from_keypoints(keypoints: np.ndarray, depth: np.ndarray, focal_px: float, min_confidence: float = 0.3,
                           depth_band_m: float = 0.2) -> np.ndarray:
     """Pixels of the person's head, trunk, arms and legs, (H, W) bool, from one view's 2D keypoints
-    (OpenPose BODY_25 first, pixels) and its depth map: each bone of `PERSON_BONES` drawn as wide as
-    the body part is at its depth, kept where the depth lies within `depth_band_m` of the bone's.
+    (OpenPose BODY_25 first, pixels) and its depth map: each bone of `PERSON_BONES`, and the face to
+    the crown (`CROWN`), drawn as wide as the body part is at its depth, kept where the depth lies
+    within `depth_band_m` of the bone's.
 
     Where a raw session has no person masks, this keeps the person out of the search for an
     object: without it a head is a box-sized blob of foreground. The hands are not drawn."""
@@ -136,13 +140,18 @@ def person_from_keypoints(keypoints: np.ndarray, depth: np.ndarray, focal_px: fl
     seen = keypoints[:, 2] >= min_confidence
     for k in np.flatnonzero(seen[:25]):
         z[k] = keypoint_depth(depth, keypoints[k, :2], radius)
-    for a, b, width in PERSON_BONES:
-        if not (seen[a] and seen[b] and z[a] > 0 and z[b] > 0):
+    xy = keypoints[:, :2]
+    bones = [(xy[a], xy[b], z[a], z[b], width) for a, b, width in PERSON_BONES if seen[a] and seen[b]]
+    face = [k for k in HEAD_KEYPOINTS if seen[k] and z[k] > 0]
+    if face and seen[1]:  # face to crown (a head's top is a box-sized blob of its own), at the face's depth
+        centre, z_face = xy[face].mean(0), float(np.median(z[face]))
+        bones.append((centre, centre + CROWN * (centre - xy[1]), z_face, z_face, 0.20))
+    for xy_a, xy_b, z_a, z_b, width in bones:
+        if z_a <= 0 or z_b <= 0:
             continue
-        near, far = min(z[a], z[b]) - depth_band_m, max(z[a], z[b]) + depth_band_m
-        thickness = max(1, int(round(focal_px * width / ((z[a] + z[b]) / 2))))
+        near, far = min(z_a, z_b) - depth_band_m, max(z_a, z_b) + depth_band_m
+        thickness = max(1, int(round(focal_px * width / ((z_a + z_b) / 2))))
         bone = np.zeros((H, W), np.uint8)
-        cv2.line(bone, tuple(int(round(v)) for v in keypoints[a, :2]), tuple(int(round(v)) for v in keypoints[b, :2]),
-                 1, thickness)
+        cv2.line(bone, tuple(int(round(v)) for v in xy_a), tuple(int(round(v)) for v in xy_b), 1, thickness)
         out |= bone.astype(bool) & (depth > near) & (depth < far)
     return out

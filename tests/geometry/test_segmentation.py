@@ -32,3 +32,23 @@ def test_person_from_keypoints_takes_the_person_and_leaves_a_box_in_front():
     unseen = kp.copy()
     unseen[:, 2] = 0.1
     assert not person_from_keypoints(unseen, depth, focal).any()  # below the confidence: nothing drawn
+
+
+def test_person_from_keypoints_takes_the_head_up_to_its_crown():
+    """A head seen from behind 3 m away (its ears seen, not its nose), before a far wall without depth:
+    it is the person's up to its top. A search for a 0.6 m tool otherwise finds the top of the head, a
+    tool-wide blob of foreground, and fits the tool to it."""
+    H, W, focal = 240, 320, 250.0
+    px = focal / 3.0  # pixels per metre at 3 m
+    depth = np.zeros((H, W), np.float32)
+    head_centre, head_radius = (160, int(round(60 - 0.04 * px))), int(round(0.11 * px))
+    cv2.circle(depth, head_centre, head_radius, 3.0, -1)
+    cv2.rectangle(depth, (140, 70), (180, 160), 3.0, -1)  # neck and trunk
+    kp = keypoints_at({17: (155, 60), 18: (165, 60), 1: (160, int(round(60 + 0.2 * px))), 8: (160, 155),
+                       2: (178, 77), 5: (142, 77)})
+    head = np.zeros((H, W), np.uint8)
+    cv2.circle(head, head_centre, head_radius, 1, -1)
+    head = head.astype(bool) & (np.arange(H)[:, None] < 70)  # above the neck
+    person = person_from_keypoints(kp, depth, focal)
+    assert person[head].mean() > 0.9, person[head].mean()
+    assert person[head_centre[1] - head_radius + 1, head_centre[0]]  # the top of the head

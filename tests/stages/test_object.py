@@ -184,6 +184,66 @@ def test_mask_cut_wide_round_a_fast_lift_is_recut_round_the_fit(tmp_path):
         assert iou(tight.mask[c] > 0.5, truth_mask) > iou(wide.mask[c] > 0.5, truth_mask) + 0.2
 
 
+class SessionKeypoints:
+    """The `KeypointSource` a raw copy's run would have: the keypoints of the session it was copied from."""
+
+    def __init__(self, session):
+        self.session = session
+
+    def read(self, c: int, frame_id: int):
+        return self.session.read_keypoints(c, frame_id)
+
+
+def test_hands_round_a_carried_box_are_unknown_in_its_derived_masks(tmp_path):
+    """Raw input (no person masks) with keypoints, frame 19 of the sample (the box carried in both hands):
+    round the true pose, the pixels near the palms triangulated from the wrists are neither object nor
+    known, and those not the box's are the person's (the session's person masks); the masks still match the box, and
+    every pixel left in them lies within 5 cm of its posed surface, not on the arms."""
+    raw = tmp_path / "raw"
+    shutil.copytree(SAMPLE, raw, ignore=shutil.ignore_patterns("masks", "keypoints"))
+    session, with_masks = Session.load(raw), Session.load(SAMPLE)
+    tracker = ObjectTracker(session, load_config().object, session.object.load_mesh())
+    tracker.keypoints = SessionKeypoints(with_masks)
+    truth = np.load(SAMPLE / "ground_truth" / "object_poses.npz")
+    frame = 19
+    R, t = truth["R"][frame], truth["t"][frame]
+    assert len(tracker.palms(frame)) == 2
+    obs = tracker.observe(frame, (R, t))
+    hands_seen = 0
+    for c in range(session.num_cameras):
+        depth = session.read_depth(c, frame)
+        hands = tracker.hand_pixels(c, frame, depth, depth > 0)
+        if hands.sum() < 20:
+            continue
+        hands_seen += 1
+        person, truth_mask = with_masks.read_mask(c, frame, "person"), with_masks.read_mask(c, frame, "object")
+        assert (hands & person).sum() > 0.8 * (hands & ~truth_mask).sum()  # the box's part near them, or the hand's
+        assert not (obs.mask[c][hands] > 0).any() and not (obs.known[c][hands] > 0).any()
+        known = obs.known[c] > 0
+        if truth_mask.sum() > 250:  # where the label is known
+            assert iou((obs.mask[c] > 0.5) & known, truth_mask & known) > 0.8
+        ys, xs = np.nonzero((obs.mask[c] > 0.5) & (depth > 0))  # (dropouts between its parts are filled in)
+        points = tracker._pixel_points(c, ys, xs, depth[ys, xs].astype(np.float64))
+        assert tracker.near_surface(points, R, t, tracker.cfg.near_margin_m + 1e-3).all()
+    assert hands_seen >= 2
+
+
+def test_a_search_leaves_out_a_fit_the_masks_hardly_show(sample_tracker):
+    """`locate` ranks what a search found by IoU x the share of its silhouettes the masks show as object:
+    at the true pose most of the box is shown; moved 0.6 m up into the air beside it, nothing is, and
+    the fit is left out (a tool fitted to a few pixels at a head's edge, the rest over the far wall)."""
+    tracker, session, truth = sample_tracker
+    frame = 2
+    R, t = truth["R"][frame], truth["t"][frame]
+    obs = tracker.observe(frame, (R, t))
+    fit = tracker.fit(obs, R, t, iterations=0)
+    assert tracker.silhouette_recall(obs, fit) > 0.6
+    assert tracker.located_score(frame, obs, fit) is not None
+    away = dataclasses.replace(fit, t=t + np.array([0.0, 0.0, 0.6]))
+    assert tracker.silhouette_recall(obs, away) < 0.05
+    assert tracker.located_score(frame, obs, away) is None
+
+
 def test_refit_recovers_a_quarter_turn(sample_tracker):
     """Started a quarter turn off (the 0.30 x 0.20 x 0.15 m box turned about its long axis), the
     local fit sinks into the wrong minimum; `refit` (quarter turns about the principal axes) gets

@@ -16,8 +16,10 @@ Three sources, each a small function:
   `contact.regions` (both hands by default) is nearer than T_d.
 
 Detected labels miss a contact where the fit's hand is off the object (one or two views
-cannot place a hand along their rays); an object that then touches nothing and the floor
-and does not fall is held (`held_frames`), by the regions that held it next to the run.
+cannot place a hand along their rays, a thin handle in a hand fitted from raw input); an
+object that moves across a gap too short to be a flight is carried (`carried_gaps`), and one
+that touches nothing and the floor for longer and does not fall is held (`held_frames`), by
+the regions that held it next to the run.
 
 Frames whose needed per-frame result is missing (NaN body or object pose) count as
 no contact and are listed. Detected labels can be cleaned in time (`clean_labels`:
@@ -28,8 +30,8 @@ contact (T,), method, frame_ids (T,), region_names (R,), region_distance_m (T, R
 (NaN where unknown), region_contact (T, R) (which regions touch in each contact
 frame: for 3D those nearer than T_d; for annotated and 2D labels the nearest
 region of `contact.regions` and every region within `region_margin_m`),
-invalid (T,) (frames the method could not judge), held (T,) (contact frames `held_frames`
-added), and each source's labels
+invalid (T,) (frames the method could not judge), held (T,) and carried (T,) (contact frames
+`held_frames` and `carried_gaps` added), and each source's labels
 (annotated, overlap_2d, distance_3d) with the 2D overlap counts (T, C).
 For the report: region_vertex_ids (concatenated, int32) with region_sizes (R,), and the
 body model's rest_vertices (V, 3) (the contact heat map is drawn on them).
@@ -135,6 +137,23 @@ def clean_labels(labels: np.ndarray, frames: int) -> np.ndarray:
     for s, e in _runs(out):
         if e - s < frames:
             out[s:e] = False
+    return out
+
+
+def carried_gaps(contact: np.ndarray, centres: np.ndarray, max_frames: int, rest_m: float) -> np.ndarray:
+    """(T,) bool: the frames of each gap in `contact` (T,) shorter than `max_frames` between two contact
+    frames over which the object moved: its centre (T, 3; NaN where untracked) `rest_m` or more from
+    where it was in the contact frame before, in a frame of the gap or the contact frame after. Too
+    short to be a flight (`held_frames` needs `max_frames`), such a gap is a carry where the fit's hand
+    lies a little off the object (a 3.5 cm tool handle in a hand fitted from raw input); a hand nearing
+    an object at rest, touching it in some frames and not in others, is left as it is."""
+    out = np.zeros(len(contact), bool)
+    for first, end in _runs(~np.asarray(contact, bool)):
+        if first == 0 or end >= len(contact) or end - first >= max_frames or not np.isfinite(centres[first - 1]).all():
+            continue
+        moved = np.linalg.norm(centres[first:end + 1] - centres[first - 1], axis=1)
+        if (np.nan_to_num(moved, nan=0.0) >= rest_m).any():
+            out[first:end] = True
     return out
 
 
@@ -411,11 +430,15 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     extra = {}
     if session.contact_frames is not None:
         extra["annotated"] = annotated_labels(session.contact_frames, frame_ids)
+    carried = np.zeros(T, bool)
     if method == "annotated":
         contact, invalid = extra["annotated"], np.zeros(T, bool)
     else:
         raw, judged = sources[method]
         contact, invalid = clean_labels(raw & judged, clean_frames), ~judged
+        carried = carried_gaps(contact, object_centres(per_frame, mesh), cfg.global_.flight_min_frames,
+                               ccfg.held_rest_m) & judged  # a frame without the results stays no contact
+        contact = contact | carried
     margin = ccfg.distance_m if method == "3d" else ccfg.region_margin_m
     touching = touching_regions(contact, distance, columns, margin)
     held, held_runs = np.zeros(T, bool), []
@@ -430,7 +453,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
 
     save_npz(stage_dir / "contact.npz", contact=contact, method=np.array(method), frame_ids=frame_ids,
              region_names=np.array(names), region_distance_m=distance, region_contact=touching, invalid=invalid,
-             held=held,
+             held=held, carried=carried,
              overlap_2d=overlap_2d & judged_2d, distance_3d=distance_3d & judged_3d, overlap_px=counts,
              mask_source=np.array(mask_source), region_vertex_ids=np.concatenate(ids).astype(np.int32),
              region_sizes=np.array([len(i) for i in ids], np.int32),
@@ -449,11 +472,19 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         "invalid_frame_ids": frame_ids[invalid].tolist(),
         "mask_source": mask_source,
         "region_frames": {n: int(touching[:, k].sum()) for k, n in enumerate(names) if touching[:, k].any()},
+        "carried_frames": int(carried.sum()),
         "held_frames": int(held.sum()),
         "held_runs": [list(r) for r in held_runs],
     }
     _gt_accuracy(figures, session, {"2d": overlap_2d & judged_2d, "3d": distance_3d & judged_3d, **extra})
     return figures
+
+
+def object_centres(per_frame, mesh) -> np.ndarray:
+    """(T, 3) the mesh centroid's world position in each frame of the per-frame object track, NaN where
+    it is not tracked."""
+    R, t = np.nan_to_num(per_frame.R), np.nan_to_num(per_frame.t)
+    return np.where(per_frame.object_valid[:, None], t + R @ np.asarray(mesh.vertices, np.float64).mean(0), np.nan)
 
 
 def object_held(session, cfg, per_frame, mesh, contact: np.ndarray, touching: np.ndarray, out_dir: Path):
@@ -467,7 +498,7 @@ def object_held(session, cfg, per_frame, mesh, contact: np.ndarray, touching: np
     vertices = np.asarray(mesh.vertices, np.float64)
     valid = per_frame.object_valid
     R, t = np.nan_to_num(per_frame.R), np.nan_to_num(per_frame.t)
-    centres = np.where(valid[:, None], t + R @ vertices.mean(0), np.nan)
+    centres = object_centres(per_frame, mesh)
     samples = vertices[np.random.default_rng(0).choice(len(vertices), min(len(vertices), 256), replace=False)]
     points = np.where(valid[:, None, None], np.einsum("tij,mj->tmi", R, samples) + t[:, None], np.nan)
     on_ground = object_on_ground(points, plane.point, plane.normal, g.flight_ground_margin_m)

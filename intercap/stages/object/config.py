@@ -75,6 +75,9 @@ class ObjectConfig:
     # derived masks without person masks: a search over a whole view leaves out the person's head, trunk, arms
     # and legs drawn from the run's keypoints of at least this confidence (0-1; above 1: not left out)
     person_keypoint_confidence: float = 0.3
+    # derived masks without person masks, round a pose: pixels within this (m) of a palm found from those keypoints
+    # are unknown, neither object nor background (a hand holding a tool is otherwise part of it; 0: kept)
+    hand_radius_m: float = 0.10
     # the run: checkpoints, pictures, seams
     checkpoint_every: int = 10  # frames between saves of a chunk's progress (OUT/object/progress_LO_HI.npz)
     overlay_every: int = 10  # an overlay picture (OUT/object/overlays/) every this many frames

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 import torch
-import trimesh
 
 from intercap.energies import optim
 from intercap.energies.losses import matrix_to_rotation_6d, occlusion_weight, rotation_6d_to_matrix
@@ -37,9 +36,12 @@ from intercap.geometry.symmetry import (axis_angle_matrix, equivalent_pose, mesh
                                         rotation_angle_deg, surface_moments)
 from intercap.stages.chunks import lockstep
 from intercap.stages.object import terms
-from intercap.stages.object.observations import Observation, ObservationReader, crop_windows
+from intercap.stages.object.observations import Observation, ObservationReader, crop_windows, hard_silhouettes
 
 reg = o3d.pipelines.registration
+# `locate`: a search's fit whose mask lies more than this share on the person is the person, and one whose
+# silhouettes the masks show less than this share of is not the object
+PERSON_SHARE, MIN_RECALL = 0.35, 0.1
 o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)  # RANSAC's per-call warnings are noise here
 
 
@@ -151,10 +153,9 @@ class ObjectTracker(ObservationReader):
         self.faces = np.asarray(mesh.faces, dtype=np.int64)
         self.vertices_c = torch.as_tensor(vertices - self.centroid, dtype=torch.float32, device=device)  # centred
         self.topology = MeshTopology.from_faces(torch.as_tensor(self.faces, device=device))
-        samples, face_ids = trimesh.sample.sample_surface(mesh, 4000, seed=cfg.seed)
-        self.model_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(samples) - self.centroid))
-        self.model_cloud.normals = o3d.utility.Vector3dVector(np.asarray(mesh.face_normals)[face_ids])
-        _, _, axes = np.linalg.svd(np.asarray(samples) - self.centroid, full_matrices=False)
+        self.model_cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(self.surface_samples))
+        self.model_cloud.normals = o3d.utility.Vector3dVector(np.asarray(mesh.face_normals)[self.sample_faces])
+        _, _, axes = np.linalg.svd(self.surface_samples, full_matrices=False)
         self.turns = [axis_rotation(a, angle) for a in axes for angle in (90, 180, 270)]  # (3, 3) in object coords
         self._orientations = None  # `orientations`, found when first asked
         # renders of fixed shapes (`rendering.Capacity`), each fit step one replayed CUDA graph
@@ -420,10 +421,16 @@ class ObjectTracker(ObservationReader):
         """Search, returns (observation, Fit or None): the object found in a frame without a prediction
         or session masks. At each of its `candidate_places` the masks are cut round the place (with a
         reach of the mesh's radius: a place is where its visible part is) and the mesh registered
-        there (`initialise`), then cut again round the fit (`recut`); the fit whose silhouettes agree
-        best (IoU, then E_O) wins. Without a place, the whole view's best-sized part (`initialise`).
-        `places`: how many places at most (default `init_places`)."""
-        best_obs, best = self.observe(frame_id, None), None
+        there (`initialise`), then cut again round the fit (`recut`). A fit is left out where its mask
+        lies mostly on the person drawn from keypoints (`on_person`: a forearm or a shin looks like a
+        tool) or where the observation shows under `MIN_RECALL` of its silhouette as object
+        (`silhouette_recall`: a tool fitted to a few pixels at a head's edge, the rest of it over
+        pixels without depth, agrees with them as well as the tool does with itself). Of the
+        others, the highest IoU x recall wins, then the lowest E_O. Without a place, the whole view's
+        best-sized part (`initialise`), left out alike. `places`: how many places at most (default
+        `init_places`)."""
+        best_obs, best, best_score = self.observe(frame_id, None), None, None
+        tried = False
         for centre in self.candidate_places(frame_id)[:places]:
             obs = self.observe(frame_id, (np.eye(3), self.from_centre(np.eye(3), centre)), reach_m=self.radius)
             if obs.visible_views < self.cfg.min_views:
@@ -431,14 +438,51 @@ class ObjectTracker(ObservationReader):
             fit = yield from self.initialise(obs)
             if fit is None:
                 continue
+            tried = True
             tight_obs, tight = yield from self.recut(frame_id, fit)
             if tight is not None and tight.confidence >= fit.confidence:
                 obs, fit = tight_obs, tight
-            if best is None or (fit.confidence, -fit.energy) > (best.confidence, -best.energy):
-                best_obs, best = obs, fit
-        if best is None:
-            best = yield from self.initialise(best_obs)
+            score = self.located_score(frame_id, obs, fit, tight_obs)
+            if score is not None and (best_score is None or score > best_score):
+                best_obs, best, best_score = obs, fit, score
+        if best is None and not tried:
+            fit = yield from self.initialise(best_obs)
+            best = fit if fit is not None and self.located_score(frame_id, best_obs, fit) is not None else None
         return best_obs, best
+
+    def located_score(self, frame_id: int, obs: Observation, fit: Fit,
+                      around: Observation | None = None) -> tuple[float, float] | None:
+        """`locate`'s ranking of a fit found by a search (IoU x recall, then -E_O), or None where it is
+        left out: on the person (by the masks cut round it, `around`, the person not left out: a place's
+        cut leaves the person out, and a tool on a shin looks alone there), or too little of its
+        silhouette observed."""
+        recall = self.silhouette_recall(obs, fit)
+        if recall < MIN_RECALL or self.on_person(frame_id, around or obs) > PERSON_SHARE:
+            return None
+        return fit.confidence * recall, -fit.energy
+
+    def silhouette_recall(self, obs: Observation, fit: Fit) -> float:
+        """The share (0-1) of the posed mesh's silhouettes, over all views, that the observation's
+        masks show as object."""
+        silhouettes = hard_silhouettes(self.world_vertices_np(fit.R, fit.t), self.faces, self.cameras, self.sizes)
+        shown = sum(int((sil & (obs.mask[c, :sil.shape[0], :sil.shape[1]] > 0.5)).sum())
+                    for c, sil in enumerate(silhouettes))
+        return shown / max(1, sum(int(sil.sum()) for sil in silhouettes))
+
+    def on_person(self, frame_id: int, obs: Observation) -> float:
+        """The share (0-1) of the observation's object pixels that lie on the person drawn from the
+        run's keypoints (`person_hint`; 0 where the session has person masks or there are no
+        keypoints: the person is out of the masks already, or cannot be told)."""
+        inside = total = 0
+        for c in map(int, np.flatnonzero(obs.has_view)):
+            h, w = self.sizes[c]
+            if self.session.read_mask(c, frame_id, "person") is not None:
+                continue
+            person = self.person_hint(c, frame_id, obs.depth[c, :h, :w])
+            if person is not None:
+                mask = obs.mask[c, :h, :w] > 0.5
+                inside, total = inside + int((mask & person).sum()), total + int(mask.sum())
+        return inside / total if total else 0.0
 
     def initialise(self, obs: Observation, extra: list | None = None):
         """Search, returns a Fit or None: the best of the registration hypotheses (plus `extra`

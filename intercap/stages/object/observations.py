@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import torch
+import trimesh
+from scipy.spatial import cKDTree
 
 from intercap.geometry.cameras import Cameras, pixel_rays, project
 from intercap.geometry.rendering import crop_observation
@@ -30,6 +32,9 @@ from intercap.geometry.segmentation import (
     uncertain_mask,
 )
 from intercap.session.session import in_threads
+
+
+WRIST_ELBOW = ((4, 3), (7, 6))  # BODY_25 wrist and elbow of the right and the left arm
 
 
 @dataclass
@@ -112,6 +117,10 @@ class ObservationReader:
         self.extent = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         # the bounding sphere's radius about the centroid
         self.radius = float(np.linalg.norm(vertices - self.centroid, axis=1).max())
+        # surface samples about the centroid (with their faces), and a tree of them for `near_surface`
+        samples, self.sample_faces = trimesh.sample.sample_surface(mesh, 4000, seed=cfg.seed)
+        self.surface_samples = np.asarray(samples, np.float64) - self.centroid
+        self._surface_tree = cKDTree(self.surface_samples)
         self.sizes = [(c.height, c.width) for c in session.cameras]
         self.session_masks = cfg.use_session_masks  # the session's mask where a view and frame has one ...
         self.use_masks = cfg.use_session_masks and not session.missing("mask_object").any()  # ... or everywhere
@@ -119,6 +128,7 @@ class ObservationReader:
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
+        self._palms: dict[int, np.ndarray] = {}  # `palms`, by frame
         self.keypoints = None  # a `KeypointSource` (the run's detections): keeps the person out of a search
 
     def person_hint(self, c: int, frame_id: int, depth: np.ndarray) -> np.ndarray | None:
@@ -129,6 +139,52 @@ class ObservationReader:
             return None
         focal = float(self.cameras.K[c, 0, 0])
         return person_from_keypoints(keypoints, depth, focal, self.cfg.person_keypoint_confidence)
+
+    def palms(self, frame_id: int) -> np.ndarray:
+        """World points (n, 3) of the person's palms in a frame (none without keypoints): each wrist
+        triangulated from the views' keypoints of at least `person_keypoint_confidence`, moved on
+        along the forearm (elbow to wrist) by a third of it where the elbow is found too."""
+        from intercap.stages.body.observations import triangulate
+
+        if self.keypoints is None:
+            return np.zeros((0, 3))
+        with self._lock:
+            if frame_id in self._palms:
+                return self._palms[frame_id]
+        arm = np.zeros((len(self.sizes), len(WRIST_ELBOW) * 2, 3), np.float32)  # (C, wrist and elbow per hand, 3)
+        for c in range(len(self.sizes)):
+            row = self.keypoints.read(c, frame_id)
+            if row is not None:
+                arm[c] = row[np.ravel(WRIST_ELBOW)]
+        arm[..., 2] *= arm[..., 2] >= self.cfg.person_keypoint_confidence
+        arm = torch.from_numpy(arm)[None].to(self.cameras.K.device)
+        points, ok = (v[0].cpu().double().numpy() for v in triangulate(arm, self.cameras))
+        palms = [points[2 * h] + (points[2 * h] - points[2 * h + 1]) / 3 if ok[2 * h + 1] else points[2 * h]
+                 for h in range(len(WRIST_ELBOW)) if ok[2 * h]]
+        palms = np.array(palms).reshape(-1, 3)
+        with self._lock:
+            if len(self._palms) > 64:
+                self._palms.clear()
+            self._palms[frame_id] = palms
+        return palms
+
+    def hand_pixels(self, c: int, frame_id: int, depth: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """(H, W) bool: of view c's `pixels`, those whose 3D points lie within `object.hand_radius_m`
+        of a palm (`palms`)."""
+        out = np.zeros_like(pixels)
+        palms = self.palms(frame_id) if self.cfg.hand_radius_m > 0 else np.zeros((0, 3))
+        if not len(palms):
+            return out
+        ys, xs = np.nonzero(pixels & (depth > 0))
+        points = self._pixel_points(c, ys, xs, depth[ys, xs])
+        near = (np.linalg.norm(points[:, None] - palms[None], axis=2) < self.cfg.hand_radius_m).any(1)
+        out[ys[near], xs[near]] = True
+        return out
+
+    def near_surface(self, points: np.ndarray, R, t, within: float) -> np.ndarray:
+        """(N,) bool: world `points` within `within` (m) of the mesh's surface under pose (R, t)."""
+        local = (points - self.to_centre(R, t)) @ np.asarray(R)  # world -> centred object coordinates
+        return self._surface_tree.query(local, distance_upper_bound=within)[0] < within
 
     def to_centre(self, R, t) -> np.ndarray:
         """The mesh centroid's world position under object->world pose (R, t)."""
@@ -211,16 +267,24 @@ class ObservationReader:
         bounding sphere at that pose (grown by `reach_m` + `near_margin_m`): the 3D form of
         render-compare-and-preserve, which keeps all fragments of a thin-barred object
         and, unlike overlap in the image, does not cut off an object that moved more
-        than predicted. Without one, the component whose 3D extent best matches the
+        than predicted. Where the reach is under the sphere's radius (the predicted turn
+        means something), the point must also lie within that margin and reach of the
+        posed surface: a long tool's sphere takes in the arm and body that hold it, its
+        surface the hand alone. A reach of the radius or more is a place, its turn unknown:
+        the person is left out there as in a search. Without a prediction, the component
+        whose 3D extent best matches the
         object's. Pixels only slightly in front of the background (a chair's feet on the
         floor, a box's bottom edge) are neither object nor background: unknown."""
-        candidates, known, gap = self._candidates(c, frame_id, depth, predicted is None)
+        place = predicted is not None and reach_m >= self.radius  # where the object may be, its turn unknown
+        candidates, known, gap = self._candidates(c, frame_id, depth, predicted is None or place)
         if predicted is not None:
             R, t = predicted
             centre = self.to_centre(R, t)
             ys, xs = np.nonzero(candidates & (depth > 0))
             points = self._pixel_points(c, ys, xs, depth[ys, xs])
             near = np.linalg.norm(points - centre, axis=1) < self.radius + self.cfg.near_margin_m + reach_m
+            if not place and near.any():
+                near[near] = self.near_surface(points[near], R, t, self.cfg.near_margin_m + reach_m)
             mask = np.zeros_like(candidates)
             mask[ys[near], xs[near]] = True
             mask = fill_missing(mask, depth, gap) & candidates
@@ -232,13 +296,17 @@ class ObservationReader:
     def _candidates(self, c: int, frame_id: int, depth: np.ndarray, search: bool):
         """View c's object candidates (the depth foreground outside the person, (H, W) bool), its
         known labels (H, W) bool and the gap its fragments are bridged over (pixels); `search`: a
-        search over the whole view, where the person drawn from keypoints is left out too."""
+        search over the whole view, where the person drawn from keypoints is left out too; else,
+        without a person mask, the hands found from keypoints are left out and unknown (`hand_pixels`)."""
         background = self._background()[c]
         foreground = foreground_mask(depth, background)
         known = (depth > 0) & ~(uncertain_mask(depth, background) & ~foreground)
         person = self.session.read_mask(c, frame_id, "person")
         if person is None and search:  # a search over the whole view: not the person
             person = self.person_hint(c, frame_id, depth)
+        elif person is None:  # round a pose: the hands are neither object nor background
+            person = self.hand_pixels(c, frame_id, depth, foreground)
+            known &= ~person
         gap = self._bridge_px(c)
         # Dropouts (a dark surface loses much of its depth, speckled) would let the opening
         # in `clean_mask` erase thin parts: fill them first where foreground surrounds them.

@@ -175,7 +175,7 @@ def orientation_check_due(tracker: ObjectTracker, fit, history: list, state: dic
     return 0
 
 
-def check_orientation(tracker: ObjectTracker, obs, fit, history: list, state: dict, i: int):
+def check_orientation(tracker: ObjectTracker, obs, fit, history: list, state: dict, i: int, frame_id: int):
     """Search, returns (fit, turned): frame i's fit, from `ObjectTracker.orientation_search` where a check
     is due (`orientation_check_due`; the best orientation wins at a track's start, elsewhere only
     where its E_O is below `confirm_ratio` of the fit's); turned: the orientation changed."""
@@ -186,17 +186,20 @@ def check_orientation(tracker: ObjectTracker, obs, fit, history: list, state: di
     state["checked"][i], state["orientation_energy"][i] = why, energies
     if best is fit or (why != AT_START and best.energy > tracker.cfg.confirm_ratio * fit.energy):
         return fit, False
-    log.info("object: frame %d: orientation checked (%s): E_O %.4g -> %.4g", i, CHECK_NAMES[why], fit.energy,
+    log.info("object: frame %d: orientation checked (%s): E_O %.4g -> %.4g", frame_id, CHECK_NAMES[why], fit.energy,
              best.energy)
     return best, True
 
 
-def trusted_pose(tracker: ObjectTracker, fit, history: list, i: int, reference: float, good, turned: bool = False):
+def trusted_pose(tracker: ObjectTracker, fit, history: list, i: int, reference: float, good, turned: bool = False,
+                 energies: np.ndarray | None = None):
     """Frame i's pose from `fit` where it is trusted (E_O within `trust_energy_ratio` of the level:
     a hand closing round the object raises E_O a little), turned like the last trusted pose
     (`hold_symmetric_turn`); None where it is not, or where it turned too fast (`turned_too_fast`)
-    unless it fits clearly better than the frames before (a turn back) or an orientation check
-    turned it (`turned`)."""
+    unless it fits clearly better than the frames before and than the last trusted one (a turn
+    back; `energies`: the frames' E_O: a hand letting go of a tool raises the level with untrusted
+    frames, and a registration turned half round must still beat the pose trusted before them) or
+    an orientation check turned it (`turned`)."""
     cfg = tracker.cfg
     if not good(fit, cfg.trust_energy_ratio):
         return None
@@ -207,7 +210,8 @@ def trusted_pose(tracker: ObjectTracker, fit, history: list, i: int, reference: 
     if (last_at is not None and not turned
             and turned_too_fast(pose[0], history[last_at][0], i - last_at, cfg.max_turn_deg_per_frame,
                                 spin_prediction(history, cfg.max_turn_deg_per_frame))
-            and fit.energy > cfg.fast_turn_energy_ratio * reference):
+            and fit.energy > cfg.fast_turn_energy_ratio * min(
+                reference, np.inf if energies is None else float(energies[last_at]))):
         return None
     return pose
 
@@ -235,8 +239,8 @@ def track_frame(tracker: ObjectTracker, frame_ids: np.ndarray, i: int, history: 
     if obs.visible_views >= cfg.min_views:
         obs, fit, status = yield from search_frame(tracker, obs, frame_id, predicted, reach, good, state, i)
         if fit is not None:
-            fit, turned = yield from check_orientation(tracker, obs, fit, history, state, i)
-    return fit, trusted_pose(tracker, fit, history, i, reference, good, turned), status
+            fit, turned = yield from check_orientation(tracker, obs, fit, history, state, i, frame_id)
+    return fit, trusted_pose(tracker, fit, history, i, reference, good, turned, state["energy"]), status
 
 
 def track_steps(tracker: ObjectTracker, frame_ids: np.ndarray, checkpoint: Checkpoint | None = None,

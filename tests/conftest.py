@@ -297,3 +297,13 @@ def floor_basis(up):
     e1 = np.cross(up, [0.0, 0.0, 1.0])
     e1 /= np.linalg.norm(e1)
     return e1, np.cross(up, e1)
+
+
+class SessionKeypoints:
+    """The `KeypointSource` a raw copy's run would have: the keypoints of the session it was copied from."""
+
+    def __init__(self, session):
+        self.session = session
+
+    def read(self, c: int, frame_id: int):
+        return self.session.read_keypoints(c, frame_id)

@@ -155,3 +155,50 @@ def person_from_keypoints(keypoints: np.ndarray, depth: np.ndarray, focal_px: fl
         cv2.line(bone, tuple(int(round(v)) for v in xy_a), tuple(int(round(v)) for v in xy_b), 1, thickness)
         out |= bone.astype(bool) & (depth > near) & (depth < far)
     return out
+
+
+def chromaticity(rgb: np.ndarray) -> np.ndarray:
+    """(N, 2) normalised red and green, r / (r + g + b) and g / (r + g + b), of (N, 3) RGB colours:
+    the colour without its brightness, which shading changes over a surface."""
+    rgb = np.asarray(rgb, np.float64)
+    return rgb[:, :2] / np.maximum(rgb.sum(1, keepdims=True), 1.0)
+
+
+class ColourLikelihood:
+    """How much likelier a colour is on the object than on what it is told apart from (a hand):
+    the two chromaticity histograms (`bins` per side, each smoothed over its neighbouring bins),
+    from colour samples of each. Colours darker than `min_brightness` (r + g + b, 0-765) have no
+    reliable chromaticity and are never the object's."""
+
+    def __init__(self, object_rgb: np.ndarray, other_rgb: np.ndarray, bins: int = 32, min_brightness: float = 60.0):
+        self.bins, self.min_brightness = bins, min_brightness
+        self.object, self.other = (self._histogram(self._bright(s)) for s in (object_rgb, other_rgb))
+
+    def _bright(self, rgb: np.ndarray) -> np.ndarray:
+        rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
+        return rgb[rgb.sum(1) >= self.min_brightness]
+
+    def _cells(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        rg = np.clip((chromaticity(rgb) * self.bins).astype(int), 0, self.bins - 1)
+        return rg[:, 0], rg[:, 1]
+
+    def _histogram(self, rgb: np.ndarray) -> np.ndarray:
+        counts = np.zeros((self.bins, self.bins))
+        np.add.at(counts, self._cells(rgb), 1.0)
+        counts = cv2.blur(counts, (3, 3), borderType=cv2.BORDER_CONSTANT)
+        return counts / max(counts.sum(), 1.0)
+
+    def ratio(self, rgb: np.ndarray) -> np.ndarray:
+        """(N,) object over other likelihood of each colour (0 for dark ones; a floor keeps colours
+        neither was seen in from dividing by nothing)."""
+        rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
+        cells = self._cells(rgb)
+        floor = 0.1 / self.bins ** 2
+        out = (self.object[cells] + floor * 1e-3) / (self.other[cells] + floor)
+        return np.where(rgb.sum(1) >= self.min_brightness, out, 0.0)
+
+    def separable(self, ratio: float) -> float:
+        """The share of the object's samples (histogram mass) whose colour passes `ratio`: how
+        much of the object the test can tell apart."""
+        floor = 0.1 / self.bins ** 2
+        return float(self.object[(self.object + floor * 1e-3) / (self.other + floor) > ratio].sum())

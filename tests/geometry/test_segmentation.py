@@ -1,8 +1,9 @@
-"""Person pixels drawn from 2D keypoints: the person's head and trunk, not what stands in front of them."""
+"""Person pixels drawn from 2D keypoints (the person's head and trunk, not what stands in front of them), and
+an object told from the hands by its colour."""
 import cv2
 import numpy as np
 
-from intercap.geometry.segmentation import person_from_keypoints
+from intercap.geometry.segmentation import ColourLikelihood, person_from_keypoints
 
 
 def keypoints_at(points: dict) -> np.ndarray:
@@ -52,3 +53,21 @@ def test_person_from_keypoints_takes_the_head_up_to_its_crown():
     person = person_from_keypoints(kp, depth, focal)
     assert person[head].mean() > 0.9, person[head].mean()
     assert person[head_centre[1] - head_radius + 1, head_centre[0]]  # the top of the head
+
+
+def test_colour_likelihood_tells_a_red_cup_from_skin_whatever_its_shading():
+    """Samples of a red object under shading from 0.4 to 1.0, and of skin and a blue shirt: a red pixel
+    in shadow is far likelier the object's, skin and the shirt are not, a dark pixel never is; a carton
+    the colour of skin is hardly told apart from it (`separable`)."""
+    rng = np.random.default_rng(0)
+
+    def shaded(rgb, n):
+        return np.clip(np.asarray(rgb, float) * rng.uniform(0.4, 1.0, (n, 1)) + rng.normal(0, 3, (n, 3)), 0, 255)
+
+    red, skin, shirt = (200, 60, 55), (224, 172, 140), (58, 128, 158)
+    test = ColourLikelihood(shaded(red, 500), np.concatenate([shaded(skin, 400), shaded(shirt, 100)]))
+    ratio = test.ratio(np.array([[120, 36, 33], [224, 172, 140], [58, 128, 158], [20, 6, 5]]))
+    assert ratio[0] > 20 and ratio[1] < 0.1 and ratio[2] < 0.1 and ratio[3] == 0, ratio
+    assert test.separable(4.0) > 0.95
+    carton = ColourLikelihood(shaded((210, 165, 120), 500), shaded(skin, 500))
+    assert carton.separable(4.0) < 0.5

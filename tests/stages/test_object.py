@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from conftest import trimmed_copy
+from conftest import SessionKeypoints, trimmed_copy
 
 from intercap.config import load_config
 from intercap.energies.losses import geman_mcclure, matrix_to_rotation_6d, rotation_6d_to_matrix
@@ -182,16 +182,6 @@ def test_mask_cut_wide_round_a_fast_lift_is_recut_round_the_fit(tmp_path):
     for c in range(3):  # the views that see the box
         truth_mask = with_masks.read_mask(c, frame, "object")
         assert iou(tight.mask[c] > 0.5, truth_mask) > iou(wide.mask[c] > 0.5, truth_mask) + 0.2
-
-
-class SessionKeypoints:
-    """The `KeypointSource` a raw copy's run would have: the keypoints of the session it was copied from."""
-
-    def __init__(self, session):
-        self.session = session
-
-    def read(self, c: int, frame_id: int):
-        return self.session.read_keypoints(c, frame_id)
 
 
 def test_hands_round_a_carried_box_are_unknown_in_its_derived_masks(tmp_path):

@@ -57,6 +57,9 @@ class ObjectConfig:
     trust_energy_ratio: float = 2.0  # E_O still above this times that median after the search: untrusted
     energy_window: int = 30  # frames whose E_O (the last 5 with a fit) set that median
     confirm_ratio: float = 0.9  # a search ending above this times the tracked E_O confirms it as the new level
+    # of the last frame's turn, this share (0-1) is carried on into the prediction: all of it turns a rotation
+    # E_O hardly sees (a cup's tilt under a hand) into a drift that grows frame by frame
+    predict_turn_share: float = 0.5
     coast_frames: int = 15  # after losing track, fit from the last trusted pose for this many frames
     # a symmetric object's pose keeps its last trusted turn about its symmetry (else a spin, invisible
     # to E_O, lives on in the constant-velocity prediction)
@@ -78,6 +81,12 @@ class ObjectConfig:
     # derived masks without person masks, round a pose: pixels within this (m) of a palm found from those keypoints
     # are unknown, neither object nor background (a hand holding a tool is otherwise part of it; 0: kept)
     hand_radius_m: float = 0.10
+    # ... unless their colour is the object's: this many times (> 1) likelier on it than on the hands, as learnt
+    # from `colour_frames` frames spread over the take (0: not learnt; all unknown), where that tells at least
+    # `colour_min_separable` (0-1) of the object's colours apart
+    colour_ratio: float = 4.0
+    colour_frames: int = 12
+    colour_min_separable: float = 0.5
     # the run: checkpoints, pictures, seams
     checkpoint_every: int = 10  # frames between saves of a chunk's progress (OUT/object/progress_LO_HI.npz)
     overlay_every: int = 10  # an overlay picture (OUT/object/overlays/) every this many frames

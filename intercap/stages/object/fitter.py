@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import open3d as o3d
 import torch
+from scipy.spatial.transform import Rotation
 
 from intercap.energies import optim
 from intercap.energies.losses import matrix_to_rotation_6d, occlusion_weight, rotation_6d_to_matrix
@@ -53,15 +54,19 @@ class Fit:
     confidence: float  # mean silhouette IoU over views that see the object (pixels hidden by an occluder left out)
 
 
-def predict_pose(history: list[tuple[np.ndarray, np.ndarray] | None]):
-    """Constant-velocity prediction from the last two trusted poses (or the last one)."""
+def predict_pose(history: list[tuple[np.ndarray, np.ndarray] | None], turn_share: float = 1.0):
+    """Constant-velocity prediction from the last two trusted poses (or the last one), carrying on
+    `turn_share` (0-1) of the last frame's turn."""
     known = [h for h in history[-2:] if h is not None]
     if not known:
         return None
     if len(known) == 1 or history[-1] is None or history[-2] is None:
         return known[-1]
     (R1, t1), (R2, t2) = history[-2], history[-1]
-    return R2 @ R1.T @ R2, t2 + (t2 - t1)
+    turn = R2 @ R1.T
+    if turn_share != 1.0:
+        turn = Rotation.from_rotvec(turn_share * Rotation.from_matrix(turn).as_rotvec()).as_matrix()
+    return turn @ R2, t2 + (t2 - t1)
 
 
 def same_pose(a, b, distance_m: float, angle_deg: float = 10.0) -> bool:

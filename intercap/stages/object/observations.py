@@ -150,12 +150,14 @@ class ObservationReader:
         `person_keypoint_confidence`."""
         from intercap.stages.body.observations import triangulate
 
+        if self.keypoints is None:
+            return np.full((BODY_JOINTS, 3), np.nan)
         with self._lock:
             if frame_id in self._joints:
                 return self._joints[frame_id]
         rows = np.zeros((len(self.sizes), BODY_JOINTS, 3), np.float32)
         for c in range(len(self.sizes)):
-            row = None if self.keypoints is None else self.keypoints.read(c, frame_id)
+            row = self.keypoints.read(c, frame_id)
             if row is not None:
                 rows[c] = row[:BODY_JOINTS]
         rows[..., 2] *= rows[..., 2] >= self.cfg.person_keypoint_confidence
@@ -210,11 +212,10 @@ class ObservationReader:
         frames = [] if cfg.colour_frames <= 0 or cfg.hand_radius_m <= 0 or self.keypoints is None else \
             spread_frames(self.session.frame_ids, cfg.colour_frames)
         for frame_id in map(int, frames):
-            palms, places = self.palms(frame_id), self.candidate_places(frame_id)
-            joints = self.person_joints(frame_id)
-            joints = joints[np.isfinite(joints).all(1)]
+            palms, joints = self.palms(frame_id), self.person_joints(frame_id)
             if not len(palms):
                 continue
+            places, joints = self.candidate_places(frame_id), joints[np.isfinite(joints).all(1)]
             # a place of the object's size away from every joint (not the crown, not a hand)
             free = [p for p in places if np.linalg.norm(joints - p, axis=1).min() > self.radius + cfg.hand_radius_m]
             for c in range(len(self.sizes)):

@@ -147,19 +147,23 @@ def test_annotations_take_precedence_unless_a_detector_is_named(tmp_path, sessio
         contact.run(session, load_config(overrides=["contact.method=annotated"]), out, progress=False)
 
 
-def test_nan_body_frames_give_no_contact_and_are_listed(tmp_path, session, truth):
+def test_nan_body_frames_are_listed_and_held_only_inside_a_contact_run(tmp_path, session, truth):
+    """Frames without a body fit say nothing: inside a contact run they are held through (untracked), where
+    contact begins they count as no contact."""
     vertices = np.load(GT / "body_vertices.npy")
-    lost = np.flatnonzero(truth)[3:6]
+    first = int(np.flatnonzero(truth)[0])
+    inside, edge = np.flatnonzero(truth)[4:7], np.array([first - 1, first])  # 3 contact frames on each side
+    lost = np.sort(np.r_[edge, inside])
     vertices[lost] = np.nan
     out = write_per_frame(tmp_path / "out", vertices=vertices)
     figures = contact.run(session, load_config(), out, progress=False)
     data = contact.load_contact(out)
-    assert not np.load(out / "contact.npy")[lost].any()
+    labels = np.load(out / "contact.npy")
+    assert labels[inside].all() and data["untracked"][inside].all() and figures["untracked_gap_frames"] == 3
+    assert not labels[edge].any()
+    assert data["region_contact"][inside].any(1).all()
     assert np.isnan(data["region_distance_m"][lost]).all()
     assert figures["invalid_frame_ids"] == lost.tolist() and np.flatnonzero(data["invalid"]).tolist() == lost.tolist()
-    # a temporal clean-up bridges the hole between contact runs
-    contact.run(session, load_config(overrides=["contact.clean_frames=4"]), out, progress=False)
-    assert np.load(out / "contact.npy")[lost].all()
 
 
 def test_missing_per_frame_results_name_the_stage_to_run(tmp_path, session):
@@ -311,3 +315,27 @@ def test_a_short_gap_in_a_carry_is_filled_and_one_beside_an_object_at_rest_is_no
     untracked = moving.copy()
     untracked[9] = np.nan
     assert not contact.carried_gaps(labels, untracked, 8, 0.015)[10:13].any()
+
+
+def test_an_untracked_gap_between_contact_frames_is_held_and_a_judged_one_is_not():
+    """Frames where the object was not trusted say nothing: between two contact frames, a gap of them too
+    short to be a flight is contact, touched by the regions next to it. A gap with a judged frame in it,
+    one at the take's edge, one as long as a flight and one beside a contact frame alone stay as they are."""
+    T = 40
+    labels = np.ones(T, bool)
+    judged = np.ones(T, bool)
+    labels[5:7] = judged[5:7] = False  # two untrusted frames inside a carry
+    labels[12:15] = False
+    judged[12] = judged[14] = False  # frame 13 was judged: no contact
+    labels[20:29] = judged[20:29] = False  # as long as a flight (8 frames or more)
+    labels[:2] = judged[:2] = False  # the take's edge
+    labels[32:34] = judged[32:34] = False  # a contact frame alone among untrusted ones
+    labels[35:38] = judged[35:38] = False
+    gaps = contact.untracked_gaps(labels, judged, 8, 3)
+    assert np.flatnonzero(gaps).tolist() == [5, 6]
+    touching = np.zeros((T, 3), bool)
+    touching[labels, 1] = True
+    touching[7, 2] = True
+    regions = contact.neighbours_regions(touching, gaps)
+    assert regions[5].tolist() == regions[6].tolist() == [False, True, True]
+    assert (regions[~gaps] == touching[~gaps]).all()

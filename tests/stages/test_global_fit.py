@@ -282,6 +282,18 @@ def test_missing_per_frame_results_name_the_stage_to_run(tmp_path):
         run_pipeline(SAMPLE_SESSION, tmp_path, load_config(), stages=["global"], progress=False)
 
 
+def test_a_contact_frame_without_a_measured_hand_takes_the_hands_of_its_run():
+    """Where the object was not trusted in a contact frame, no hand distance was measured there: the
+    nearest measured contact frame of the same run says which hand holds it; other runs do not."""
+    contact = np.array([0, 1, 1, 1, 1, 0, 1, 1, 0], bool)
+    inf = np.inf
+    distance = np.array([[0.3, 0.3], [0.2, 0.0], [inf, inf], [inf, inf], [0.01, 0.2],
+                         [0.3, 0.3], [inf, inf], [inf, inf], [0.0, 0.0]])
+    grasping = observations.grasping_hands(contact, distance, 0.10)
+    assert grasping.tolist() == [[False, False], [False, True], [False, True], [True, False], [True, False],
+                                 [False, False], [False, False], [False, False], [False, False]]
+
+
 def test_symmetric_look_alikes_are_unwrapped(sample):
     """A box tracked as its 180-degree look-alike every other frame comes back as one continuous
     rotation, the surface in the same place."""

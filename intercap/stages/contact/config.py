@@ -17,6 +17,7 @@ class ContactConfig:
     overlap_px: int = 20  # T_view: overlapping pixels (at 640 px width, scaled with image area) for a view to count
     overlap_views: int = 3  # T_frame: a frame is in contact when more than this many views count (3: all of 4)
     region_margin_m: float = 0.05  # annotated / 2D frames: regions this close (m) touch too, not just the nearest
+    untracked_min_run: int = 3  # detected labels: a gap of untrusted frames between contact runs this long is contact
     clean_frames: int = 0  # detected labels: fill gaps and drop runs shorter than this many frames; 0 = off
     # detected labels: an object that touches nothing and the floor but does not fall is held (`held_frames`;
     # the global stage's flight_* settings decide a fall), by the regions that held it next to the run

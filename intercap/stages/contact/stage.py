@@ -21,8 +21,10 @@ object that moves across a gap too short to be a flight is carried (`carried_gap
 that touches nothing and the floor for longer and does not fall is held (`held_frames`), by
 the regions that held it next to the run.
 
-Frames whose needed per-frame result is missing (NaN body or object pose) count as
-no contact and are listed. Detected labels can be cleaned in time (`clean_labels`:
+Frames whose needed per-frame result is missing (NaN body or object pose) are listed; they
+count as no contact unless contact runs of `contact.untracked_min_run` frames stand on both sides of
+a run of them too short to be a flight (`untracked_gaps`: the object was held through it, by the
+regions next to it). Detected labels can be cleaned in time (`clean_labels`:
 gaps and runs shorter than `contact.clean_frames` are filled / dropped).
 
 Writes OUT/contact.npy (bool (T,), docs/outputs.md) and OUT/contact/contact.npz:
@@ -30,8 +32,8 @@ contact (T,), method, frame_ids (T,), region_names (R,), region_distance_m (T, R
 (NaN where unknown), region_contact (T, R) (which regions touch in each contact
 frame: for 3D those nearer than T_d; for annotated and 2D labels the nearest
 region of `contact.regions` and every region within `region_margin_m`),
-invalid (T,) (frames the method could not judge), held (T,) and carried (T,) (contact frames
-`held_frames` and `carried_gaps` added), and each source's labels
+invalid (T,) (frames the method could not judge), held (T,), carried (T,) and untracked (T,)
+(contact frames `held_frames`, `carried_gaps` and `untracked_gaps` added), and each source's labels
 (annotated, overlap_2d, distance_3d) with the 2D overlap counts (T, C).
 For the report: region_vertex_ids (concatenated, int32) with region_sizes (R,), and the
 body model's rest_vertices (V, 3) (the contact heat map is drawn on them).
@@ -154,6 +156,30 @@ def carried_gaps(contact: np.ndarray, centres: np.ndarray, max_frames: int, rest
         moved = np.linalg.norm(centres[first:end + 1] - centres[first - 1], axis=1)
         if (np.nan_to_num(moved, nan=0.0) >= rest_m).any():
             out[first:end] = True
+    return out
+
+
+def untracked_gaps(contact: np.ndarray, judged: np.ndarray, max_frames: int, min_run: int) -> np.ndarray:
+    """(T,) bool: the frames of each gap in `contact` (T,) shorter than `max_frames` in which nothing was
+    judged (`judged` (T,) False: the object or body untrusted there), between two contact runs of
+    `min_run` frames or more. Both sides say contact and the gap is too short to be a flight, so the
+    object was held through it. A gap with a judged frame in it is that frame's to say, and a contact
+    frame or two among untrusted ones (an object put down, its few trusted poses wrong) fills nothing."""
+    contact, judged = np.asarray(contact, bool), np.asarray(judged, bool)
+    runs = _runs(contact)
+    out = np.zeros(len(contact), bool)
+    for (start, first), (end, last) in zip(runs[:-1], runs[1:]):  # the gap [first, end) between two runs
+        if end - first < max_frames and min(first - start, last - end) >= min_run and not judged[first:end].any():
+            out[first:end] = True
+    return out
+
+
+def neighbours_regions(touching: np.ndarray, frames: np.ndarray) -> np.ndarray:
+    """(T, R) `touching` with each run of `frames` (T,) given the regions touching in the frames just
+    before and after it."""
+    out = touching.copy()
+    for first, end in _runs(frames):
+        out[first:end] = touching[max(first - 1, 0)] | touching[min(end, len(touching) - 1)]
     return out
 
 
@@ -430,7 +456,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     extra = {}
     if session.contact_frames is not None:
         extra["annotated"] = annotated_labels(session.contact_frames, frame_ids)
-    carried = np.zeros(T, bool)
+    carried, untracked = np.zeros(T, bool), np.zeros(T, bool)
     if method == "annotated":
         contact, invalid = extra["annotated"], np.zeros(T, bool)
     else:
@@ -439,8 +465,12 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         carried = carried_gaps(contact, object_centres(per_frame, mesh), cfg.global_.flight_min_frames,
                                ccfg.held_rest_m) & judged  # a frame without the results stays no contact
         contact = contact | carried
+        untracked = untracked_gaps(contact, judged, cfg.global_.flight_min_frames, ccfg.untracked_min_run)
+        contact = contact | untracked
     margin = ccfg.distance_m if method == "3d" else ccfg.region_margin_m
     touching = touching_regions(contact, distance, columns, margin)
+    if method != "annotated":
+        touching = neighbours_regions(touching, untracked)
     held, held_runs = np.zeros(T, bool), []
     # detected labels only (annotations are the user's word); the floor gives gravity's direction
     if method != "annotated" and ccfg.held and (out_dir / "prepare" / "ground.json").exists():
@@ -453,7 +483,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
 
     save_npz(stage_dir / "contact.npz", contact=contact, method=np.array(method), frame_ids=frame_ids,
              region_names=np.array(names), region_distance_m=distance, region_contact=touching, invalid=invalid,
-             held=held, carried=carried,
+             held=held, carried=carried, untracked=untracked,
              overlap_2d=overlap_2d & judged_2d, distance_3d=distance_3d & judged_3d, overlap_px=counts,
              mask_source=np.array(mask_source), region_vertex_ids=np.concatenate(ids).astype(np.int32),
              region_sizes=np.array([len(i) for i in ids], np.int32),
@@ -462,9 +492,9 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
              **extra)
     save_npy(stage_dir / "contact.npy", contact.astype(bool))
     publish(stage_dir / "contact.npy", out_dir / "contact.npy")
-    if invalid.any():
+    if (invalid & ~untracked).any():
         log.warning("contact: %d frame(s) without the per-frame results %s needs count as no contact: %s",
-                    int(invalid.sum()), method, frame_ids[invalid].tolist())
+                    int((invalid & ~untracked).sum()), method, frame_ids[invalid & ~untracked].tolist())
     figures = {
         "method": method,
         "frames_in_contact": int(contact.sum()),
@@ -473,6 +503,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
         "mask_source": mask_source,
         "region_frames": {n: int(touching[:, k].sum()) for k, n in enumerate(names) if touching[:, k].any()},
         "carried_frames": int(carried.sum()),
+        "untracked_gap_frames": int(untracked.sum()),
         "held_frames": int(held.sum()),
         "held_runs": [list(r) for r in held_runs],
     }

@@ -231,6 +231,23 @@ def load_contact_labels(out_dir: Path, T: int) -> tuple[np.ndarray, np.ndarray |
 
 
 
+def grasping_hands(contact: np.ndarray, hand_distance: np.ndarray, reach_m: float) -> np.ndarray:
+    """(T, 2) bool: the hands that hold the object, in contact frames (T,) where a hand lies within
+    `reach_m` of it (`hand_distance` (T, 2), inf where unmeasured). A contact frame with neither hand
+    measured (the object untrusted there: `contact`'s untracked gaps) takes the hands of the nearest
+    measured contact frame of its run."""
+    contact = np.asarray(contact, bool)
+    grasping = contact[:, None] & (hand_distance < reach_m)
+    unmeasured = contact & ~np.isfinite(hand_distance).any(1)
+    step = np.diff(np.r_[0, contact.astype(np.int8), 0])
+    for first, end in zip(np.flatnonzero(step == 1), np.flatnonzero(step == -1)):
+        measured = np.flatnonzero(~unmeasured[first:end]) + first
+        for k in np.flatnonzero(unmeasured[first:end]) + first:
+            if measured.size:
+                grasping[k] = grasping[measured[np.argmin(np.abs(measured - k))]]
+    return grasping
+
+
 def signed_distance_grid(vertices: np.ndarray, faces: np.ndarray, watertight: bool, resolution: int,
                          cell_m: float | None, margin_m: float | None, cells_max: int) -> dict:
     """`ObjectShape`'s grid: `sdf` (Z, Y, X) metres at the corners of cells from `lo` to `hi`."""

@@ -54,6 +54,7 @@ from intercap.stages.global_fit.observations import (
     Observations,
     PerFrameResults,
     free_flight,
+    grasping_hands,
     hand_object_distance,
     load_per_frame,
     no_flight,
@@ -226,7 +227,7 @@ class GlobalProblem:
         if with_object:
             if per_frame.hand_distance is None:
                 per_frame.hand_distance = hand_object_distance(self.model, per_frame, self.shape)
-            per_frame.grasping = per_frame.contact[:, None] & (per_frame.hand_distance < g.hand_reach_m)
+            per_frame.grasping = grasping_hands(per_frame.contact, per_frame.hand_distance, g.hand_reach_m)
         weights = g if with_object else dataclasses.replace(g, w_body_acceleration=body_alone_acceleration_weight(
             g.w_body_acceleration_alone, session.fps))
         self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, weights, self.shape, ground, session.fps)

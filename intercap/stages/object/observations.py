@@ -133,6 +133,7 @@ class ObservationReader:
         self._joints: dict[int, np.ndarray] = {}  # `person_joints`, by frame
         self._colours: ColourLikelihood | None | bool = False  # `colour_test` (False: not learnt yet)
         self._colour_lock = threading.Lock()
+        self._colour_images: dict[tuple[int, int], np.ndarray | None] = {}  # `colour_image`: the latest frames'
         self.keypoints = None  # a `KeypointSource` (the run's detections): keeps the person out of a search
 
     def person_hint(self, c: int, frame_id: int, depth: np.ndarray) -> np.ndarray | None:
@@ -219,7 +220,7 @@ class ObservationReader:
             # a place of the object's size away from every joint (not the crown, not a hand)
             free = [p for p in places if np.linalg.norm(joints - p, axis=1).min() > self.radius + cfg.hand_radius_m]
             for c in range(len(self.sizes)):
-                depth, colour = self.session.read_depth(c, frame_id), self.session.read_color(c, frame_id)
+                depth, colour = self.session.read_depth(c, frame_id), self.colour_image(c, frame_id)
                 if depth is None or colour is None:
                     continue
                 foreground = foreground_mask(depth, self._background()[c])
@@ -243,11 +244,25 @@ class ObservationReader:
                 test = None
         return test
 
+    def colour_image(self, c: int, frame_id: int) -> np.ndarray | None:
+        """View c's colour image of `frame_id`, kept for the two latest frames: a frame is observed
+        more than once (a recut, a search), and each time near a hand."""
+        key = (c, frame_id)
+        with self._lock:
+            if key in self._colour_images:
+                return self._colour_images[key]
+        image = self.session.read_color(c, frame_id)
+        with self._lock:
+            while len(self._colour_images) >= 2 * len(self.sizes):
+                self._colour_images.pop(next(iter(self._colour_images)))
+            self._colour_images[key] = image
+        return image
+
     def object_coloured(self, c: int, frame_id: int, pixels: np.ndarray) -> np.ndarray:
         """(H, W) bool: of view c's `pixels`, those whose colour is at least `colour_ratio` times
         likelier the object's than a hand's (`colour_test`; none without one)."""
         test = self.colour_test() if pixels.any() else None
-        colour = None if test is None else self.session.read_color(c, frame_id)
+        colour = None if test is None else self.colour_image(c, frame_id)
         out = np.zeros_like(pixels)
         if colour is None:
             return out

@@ -38,7 +38,9 @@ from intercap.stages.body.observations import (
     KeypointSource,
     PersonPoints,
     foot_views,
+    SIDE_GROUPS,
     reject_disagreeing_views,
+    swap_disagreeing_sides,
     triangulate,
     usable_frames,
 )
@@ -559,6 +561,30 @@ def test_a_view_whose_detections_disagree_with_the_others_is_dropped():
     checked = reject_disagreeing_views(keypoints, cameras, threshold_px=30.0)
     dropped = (keypoints[..., 2] > 0) & (checked[..., 2] == 0)
     assert torch.equal(dropped, wrong), (dropped ^ wrong).nonzero()
+
+
+def test_a_view_that_detected_the_left_and_right_limbs_the_wrong_way_round_is_exchanged_back():
+    """Keypoints seen by four views: in frame 0 one view's arms (elbows, wrists, hands) have each other's
+    labels, in frame 1 its legs; they are exchanged back, and nothing else is: not a view whose wrists are
+    merely off (exchanging them agrees no better), not a view whose wrists lie closer together than the
+    threshold (either way agrees)."""
+    session = Session.load(SAMPLE_SESSION)
+    cameras = Cameras.from_infos(session.cameras)
+    truth = torch.as_tensor(np.load(SAMPLE_SESSION / "ground_truth" / "keypoints3d.npy")[:3], dtype=torch.float32)
+    B, K = truth.shape[:2]
+    pix, _ = project(truth.reshape(1, -1, 3).expand(4, -1, -1), cameras)  # (4, B*K, 2)
+    right = torch.cat([pix.view(4, B, K, 2).transpose(0, 1), torch.ones(B, 4, K, 1)], -1)  # (B, 4, K, 3)
+    right[..., :2] += torch.randn(B, 4, K, 2, generator=torch.Generator().manual_seed(0))  # 1 px noise
+    detected = right.clone()
+    for frame, view, (r, l) in ((0, 2, SIDE_GROUPS[0]), (1, 2, SIDE_GROUPS[1]), (2, 3, SIDE_GROUPS[0])):
+        detected[frame, view, list(r) + list(l)] = right[frame, view, list(l) + list(r)]
+    detected[1, 0, [4, 7], 0] += 25.0  # frame 1: one view's wrists 25 px off, on their own sides
+    fixed, swapped = swap_disagreeing_sides(detected, cameras, threshold_px=30.0)
+    expected = detected.clone()  # frame 2's view 3 has its wrists 5-8 px apart: either way agrees, it stays
+    expected[:2] = right[:2]
+    expected[1, 0, [4, 7], 0] += 25.0
+    assert swapped == 2
+    assert torch.equal(fixed, expected)
 
 
 def test_a_gpu_fits_larger_batches_than_the_cpu():

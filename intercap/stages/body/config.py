@@ -20,7 +20,8 @@ class BodyConfig:
     side_by_side_gpu: int = 8  # side_by_side on CUDA: K chunks cost about what one does there
     min_keypoint_confidence: float = 0.2  # detections below this confidence (0-1) are ignored
     keypoint_view_check_px: float = 30.0  # a detection this far (px at 640 px width) from the other views' point
-    # is dropped (`reject_disagreeing_views`); 0: off
+    # is dropped (`reject_disagreeing_views`), a view's left and right limbs this far from them and near them
+    # exchanged are exchanged back first (`swap_disagreeing_sides`); 0: off
     min_body_keypoints: int = 6  # a view counts for a frame when it has this many confident body keypoints (of 25)
     min_points: int = 100  # a view's depth counts when its person mask gives this many points
     points_per_view: int = 400  # segmented depth points per view used by E_D (a seeded random subset)

@@ -1,8 +1,8 @@
 """What the data gives the body fit: per batch of frames, each view's 2D keypoints (`KeypointSource`)
 and segmented person points (`PersonPoints`), gathered as `BodyObservations`; how many views see
 a frame (`keypoint_views`, `foot_views`, `usable_frames`); and the keypoints placed in 3D
-(`triangulate`, `lift_keypoints`), with the views whose detections disagree dropped
-(`reject_disagreeing_views`)."""
+(`triangulate`, `lift_keypoints`), with a view's limbs detected the wrong way round exchanged back
+(`swap_disagreeing_sides`) and the views whose detections disagree dropped (`reject_disagreeing_views`)."""
 from __future__ import annotations
 
 import threading
@@ -69,6 +69,7 @@ class KeypointSource:
         self.cameras = None if cameras is None else cameras.to(device="cpu")
         self.view_check_px = view_check_px
         self.rejected = 0  # keypoints dropped by that check so far
+        self.swapped = 0  # view-limbs whose sides `swap_disagreeing_sides` exchanged so far
         self.out_dir = Path(out_dir)
         self._path = keypoints_path
         self.use_session = use_session
@@ -99,9 +100,11 @@ class KeypointSource:
                     out[b, c] = kp[:NUM_BODY_HANDS]
         out[..., 2] = np.where(out[..., 2] >= min_confidence, out[..., 2], 0.0)
         if self.cameras is not None and self.view_check_px > 0:
-            checked = reject_disagreeing_views(torch.from_numpy(out).to(self.cameras.K), self.cameras,
-                                               self.view_check_px).numpy()
+            sided, swapped = swap_disagreeing_sides(torch.from_numpy(out).to(self.cameras.K), self.cameras,
+                                                    self.view_check_px)
+            checked = reject_disagreeing_views(sided, self.cameras, self.view_check_px).numpy()
             self.rejected += int(((out[..., 2] > 0) & (checked[..., 2] == 0)).sum())
+            self.swapped += swapped
             out = checked
         return out
 
@@ -354,6 +357,60 @@ def reject_disagreeing_views(keypoints: torch.Tensor, cameras: Cameras, threshol
         mask = torch.zeros_like(seen).scatter_(1, best[:, None], drop[:, None])
         kp[..., 2] = torch.where(mask, torch.zeros_like(kp[..., 2]), kp[..., 2])
     return kp
+
+
+# (right, left) keypoints of the 67 (BODY_25, then the left and the right hand's 21) that a detector may give
+# the other side in one view, each pair's first two deciding: elbow and wrist, then the hand (its landmarks
+# follow its wrist); knee and ankle, then the foot
+SIDE_GROUPS = (((3, 4, *range(46, 67)), (6, 7, *range(25, 46))),
+               ((10, 11, 22, 23, 24), (13, 14, 19, 20, 21)))
+
+
+def swap_disagreeing_sides(keypoints: torch.Tensor, cameras: Cameras, threshold_px: float,
+                           rounds: int = 3) -> tuple[torch.Tensor, int]:
+    """(B, C, K, 3) keypoints with the views whose left and right limbs were detected the wrong way round
+    exchanged back, and how many view-limbs that exchanged. Per frame and limb pair (`SIDE_GROUPS`), each
+    view with three or more of its elbows and wrists (knees, ankles) seen is compared with the other
+    views' triangulation of them: where they lie farther than `threshold_px` (at 640 px image width,
+    scaled with it) from its points on average, and exchanged within it and at under half that distance,
+    the exchange helps; the view it helps most is exchanged, and the check runs again on what that gives
+    (`rounds` times: a wrong view misleads the points the others are compared with). Hands close round a
+    ball: one view put each wrist on the other hand, the triangulated wrists met in the ball, and the
+    fit put both hands there, 14-35 cm from the truth."""
+    kp = keypoints.clone()
+    B, C, K, _ = kp.shape
+    limit = (threshold_px * cameras.width.to(kp.dtype) / 640.0)[:, None, None]  # (C, 1, 1)
+    swapped = 0
+    for right, left in SIDE_GROUPS:
+        idx = torch.as_tensor(right + left, device=kp.device)
+        G = len(right)
+        deciding = torch.as_tensor([0, 1, G, G + 1], device=kp.device)  # within the group
+        for _ in range(rounds):
+            group = kp[:, :, idx]  # (B, C, 2G, 3)
+            mirrored = torch.cat([group[:, :, G:], group[:, :, :G]], 2)
+            seen = group[:, :, deciding, 2] > 0  # (B, C, 4)
+            gain = torch.full((B, C), -1.0, dtype=kp.dtype, device=kp.device)  # the exchange's gain, -1: none
+            for c in range(C):
+                others = group[:, :, deciding].clone()
+                others[:, c, :, 2] = 0
+                points, ok = triangulate(others, cameras)  # (B, 4, 3)
+                pix, z = project(points.reshape(-1, 3), cameras.select([c]))  # (1, B*4, 2)
+                pix, z = pix.view(B, 4, 2), z.view(B, 4)
+                usable = ok & (z > 0) & seen[:, c] & ((others[..., 2] > 0).sum(1) >= 2)
+                n = usable.sum(1)
+                kept = ((pix - group[:, c, deciding, :2]).norm(dim=-1) / limit[c, 0]) * usable
+                turned = ((pix - mirrored[:, c, deciding, :2]).norm(dim=-1) / limit[c, 0]) * usable
+                kept, turned = kept.sum(1) / n.clamp(min=1), turned.sum(1) / n.clamp(min=1)
+                helps = (n >= 3) & (kept > 1) & (turned < 1) & (turned < 0.5 * kept)
+                gain[:, c] = torch.where(helps, kept - turned, gain[:, c])
+            best = gain.argmax(1)  # one view per frame and round: a wrong one misleads the others' points
+            exchange = torch.zeros(B, C, dtype=torch.bool, device=kp.device)
+            exchange[torch.arange(B), best] = gain.amax(1) > 0
+            if not exchange.any():
+                break
+            kp[:, :, idx] = torch.where(exchange[:, :, None, None], mirrored, group)
+            swapped += int(exchange.sum())
+    return kp, swapped
 
 
 def lift_keypoints(keypoints: torch.Tensor, points: torch.Tensor, point_valid: torch.Tensor, cameras: Cameras,

@@ -125,6 +125,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                             cameras, fit_to_data_mm=take["fit_to_data_mm"].astype(np.float32),
                             reinitialised=take["reinitialised"])
     return {**figures, "keypoints_rejected_by_views": take["keypoints_rejected"],
+            "keypoint_sides_swapped": take["keypoint_sides_swapped"],
             "person_masks_from_keypoint_depth": take["person_masks_still"], "workers": len(groups),
             "chunks": take["chunks"]}
 
@@ -140,6 +141,7 @@ def stitch_chunks(results: list[list[dict]]) -> dict:
               for key in ("valid", "reprojection_px", "seconds", "fit_to_data_mm", "reinitialised")}
     return {"params": params, **arrays, "chunks": len(parts),
             "keypoints_rejected": sum(int(p.get("keypoints_rejected", 0)) for p in parts),
+            "keypoint_sides_swapped": sum(int(p.get("keypoint_sides_swapped", 0)) for p in parts),
             "person_masks_still": sum(int(p.get("person_masks_still", 0)) for p in parts)}
 
 
@@ -284,7 +286,7 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
     frame_ids = session.frame_ids[chunk.lo:chunk.hi]
     checkpoint = Checkpoint.of_chunk(workshop.out_dir, "body", chunk)
     progress = ChunkProgress.start(model, T)
-    rejected = 0  # keypoints dropped by the view check in this run's batches
+    rejected = swapped = 0  # keypoints dropped, view-limbs exchanged by the view check in this run's batches
     still = 0  # view-frames whose person stood in the depth background (`PersonPoints.still_mask`)
     workshop.shape_estimates.append(progress.shape_estimates)
     saved = checkpoint.load()
@@ -307,8 +309,8 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
                 template = progress.fitted[int(batch[progress.valid[batch]][-1])]
             continue
         start = time.perf_counter()
-        obs, dropped, masked = read_batch(workshop, frame_ids[batch])
-        rejected, still = rejected + dropped, still + masked
+        obs, dropped, exchanged, masked = read_batch(workshop, frame_ids[batch])
+        rejected, swapped, still = rejected + dropped, swapped + exchanged, still + masked
         usable = usable_frames(obs.keypoints, obs.point_valid, bcfg).cpu().numpy()
         fit_seconds = 0.0
         if usable.any():
@@ -332,23 +334,23 @@ def chunk_batches(workshop: ChunkWorkshop, chunk: Chunk, queue):
     return {"params": progress.fitted.to_numpy_dict(), "valid": progress.valid,
             "reprojection_px": progress.reprojection_px, "seconds": progress.seconds,
             "fit_to_data_mm": progress.fit_to_data_mm, "reinitialised": progress.reinitialised,
-            "keypoints_rejected": rejected, "person_masks_still": still}
+            "keypoints_rejected": rejected, "keypoint_sides_swapped": swapped, "person_masks_still": still}
 
 
-def read_batch(workshop: ChunkWorkshop, ids: np.ndarray) -> tuple[BodyObservations, int, int]:
-    """The observations of frames `ids`, the keypoints the view check dropped among them and the view-frames
-    whose person mask `PersonPoints.still_mask` made (the readers are the process's: their counts, this
-    batch's part of them)."""
+def read_batch(workshop: ChunkWorkshop, ids: np.ndarray) -> tuple[BodyObservations, int, int, int]:
+    """The observations of frames `ids`, the keypoints the view check dropped and the view-limbs it
+    exchanged among them, and the view-frames whose person mask `PersonPoints.still_mask` made (the
+    readers are the process's: their counts, this batch's part of them)."""
     keypoint_source, person = workshop.keypoint_source, workshop.person
-    before = keypoint_source.rejected
+    before, swapped_before = keypoint_source.rejected, keypoint_source.swapped
     kps = keypoint_source.batch(ids, workshop.cfg.body.min_keypoint_confidence)
-    rejected = keypoint_source.rejected - before
+    rejected, swapped = keypoint_source.rejected - before, keypoint_source.swapped - swapped_before
     before = person.still_views
     points, point_valid = person.batch(ids, kps)
     still = person.still_views - before
     device = workshop.cameras.K.device
     obs = BodyObservations(ids, torch.from_numpy(kps).to(device), points.to(device), point_valid.to(device))
-    return obs, rejected, still
+    return obs, rejected, swapped, still
 
 
 def sized_template(workshop: ChunkWorkshop, progress: ChunkProgress, sub: BodyObservations,

@@ -541,17 +541,24 @@ def test_a_child_seen_by_one_camera_is_fitted_at_its_size(tmp_path, model):
     assert np.allclose(np.load(out / "keypoints3d.npy"), keypoints, atol=1e-4)
 
 
+def sample_detections(frames: int) -> tuple[Cameras, torch.Tensor]:
+    """The sample's cameras and its first frames' true keypoints seen by all four views, (B, 4, K, 3)
+    pixels with 1 px noise and confidence 1."""
+    cameras = Cameras.from_infos(Session.load(SAMPLE_SESSION).cameras)
+    truth = torch.as_tensor(np.load(SAMPLE_SESSION / "ground_truth" / "keypoints3d.npy")[:frames], dtype=torch.float32)
+    B, K = truth.shape[:2]
+    pix, _ = project(truth.reshape(1, -1, 3).expand(4, -1, -1), cameras)  # (4, B*K, 2)
+    keypoints = torch.cat([pix.view(4, B, K, 2).transpose(0, 1), torch.ones(B, 4, K, 1)], -1)
+    keypoints[..., :2] += torch.randn(B, 4, K, 2, generator=torch.Generator().manual_seed(0))
+    return cameras, keypoints
+
+
 def test_a_view_whose_detections_disagree_with_the_others_is_dropped():
     """Keypoints seen by four views, one view's detections of some joints 25 px off (at 320 px
     width: 50 px at 640): those, and only those, lose their confidence; a joint two views see is
     never checked (nothing to compare with)."""
-    session = Session.load(SAMPLE_SESSION)
-    cameras = Cameras.from_infos(session.cameras)
-    truth = torch.as_tensor(np.load(SAMPLE_SESSION / "ground_truth" / "keypoints3d.npy")[:2], dtype=torch.float32)
-    B, K = truth.shape[:2]
-    pix, _ = project(truth.reshape(1, -1, 3).expand(4, -1, -1), cameras)  # (4, B*K, 2)
-    keypoints = torch.cat([pix.view(4, B, K, 2).transpose(0, 1), torch.ones(B, 4, K, 1)], -1)  # (B, 4, K, 3)
-    keypoints[..., :2] += torch.randn(B, 4, K, 2, generator=torch.Generator().manual_seed(0))  # 1 px noise
+    cameras, keypoints = sample_detections(2)
+    B, K = keypoints.shape[0], keypoints.shape[2]
     wrong = torch.zeros(B, 4, K, dtype=torch.bool)
     wrong[0, 2, :25] = True  # one view's whole body in frame 0
     wrong[1, 0, [4, 7]] = True  # one view's wrists in frame 1
@@ -568,13 +575,7 @@ def test_a_view_that_detected_the_left_and_right_limbs_the_wrong_way_round_is_ex
     labels, in frame 1 its legs; they are exchanged back, and nothing else is: not a view whose wrists are
     merely off (exchanging them agrees no better), not a view whose wrists lie closer together than the
     threshold (either way agrees)."""
-    session = Session.load(SAMPLE_SESSION)
-    cameras = Cameras.from_infos(session.cameras)
-    truth = torch.as_tensor(np.load(SAMPLE_SESSION / "ground_truth" / "keypoints3d.npy")[:3], dtype=torch.float32)
-    B, K = truth.shape[:2]
-    pix, _ = project(truth.reshape(1, -1, 3).expand(4, -1, -1), cameras)  # (4, B*K, 2)
-    right = torch.cat([pix.view(4, B, K, 2).transpose(0, 1), torch.ones(B, 4, K, 1)], -1)  # (B, 4, K, 3)
-    right[..., :2] += torch.randn(B, 4, K, 2, generator=torch.Generator().manual_seed(0))  # 1 px noise
+    cameras, right = sample_detections(3)
     detected = right.clone()
     for frame, view, (r, l) in ((0, 2, SIDE_GROUPS[0]), (1, 2, SIDE_GROUPS[1]), (2, 3, SIDE_GROUPS[0])):
         detected[frame, view, list(r) + list(l)] = right[frame, view, list(l) + list(r)]

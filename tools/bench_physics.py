@@ -156,7 +156,9 @@ def fitted_against_truth(session: Path, fitted: Path, scratch: Path, cfg=None) -
     There the hands together should carry m (a - g), a the true object's acceleration (what the
     truth's hands, floor and residual explain together). The hand-contact agreement is the share of
     the fitted contact stage's contact frames in which the floor carries none of the fitted object
-    whose hands carry at least a tenth of the object's weight."""
+    whose hands carry at least a tenth of the object's weight. Frames the fitted results' physics could
+    not solve (no object pose there: a contact frame held through untrusted ones) count in neither,
+    and are counted (`contact_frames_unsolved`)."""
     from intercap.session import Session
     from intercap.stages.physics import stage as physics
     from intercap.synth.motions import get_script
@@ -170,21 +172,24 @@ def fitted_against_truth(session: Path, fitted: Path, scratch: Path, cfg=None) -
         with np.load(folder / "physics" / "physics.npz") as z:
             hands[name] = np.nansum(z["hand_force"], 1)
             floor[name] = np.nan_to_num(z["object_ground_force"])
+            solved = z["valid"].astype(bool) & np.isfinite(z["hand_force"]).all((1, 2))  # last: the fitted's
             if name == "truth":
                 need = hands[name] + floor[name] + z["object_residual_force"]
                 weight = float(z["object_mass_kg"]) * float(np.linalg.norm(z["gravity"]))
     on_floor = {name: np.linalg.norm(f, axis=-1) > 1e-6 for name, f in floor.items()}
-    held = np.load(truth / "contact.npy").astype(bool) & ~on_floor["truth"]
+    held = np.load(truth / "contact.npy").astype(bool) & ~on_floor["truth"] & solved
     scale = np.maximum(np.linalg.norm(need, axis=-1), 1e-9)
     carried = np.linalg.norm(hands["fitted"], axis=-1) / scale
     error = np.linalg.norm(hands["fitted"] - need, axis=-1) / scale
-    off_floor = np.load(fitted / "contact.npy").astype(bool) & ~on_floor["fitted"]
+    in_contact = np.load(fitted / "contact.npy").astype(bool)
+    off_floor = in_contact & ~on_floor["fitted"] & solved
     has_wrench = np.linalg.norm(hands["fitted"], axis=-1) >= 0.1 * weight
     return {
         "frames": int(len(held)), "held_frames": int(held.sum()),
         "hands_carry_median": float(np.median(carried[held])) if held.any() else float("nan"),
         "hands_error_median": float(np.median(error[held])) if held.any() else float("nan"),
         "contact_with_hand_wrench_pct": float(100 * has_wrench[off_floor].mean()) if off_floor.any() else float("nan"),
+        "contact_frames_unsolved": int((in_contact & ~solved).sum()),
         **{f"{k}_{name}": figures[name].get(k) for name in ("truth", "fitted")
            for k in ("residual_root_force_pct_bw_mean", "residual_root_force_pct_bw_p95", "foot_skating_mm_s",
                      "friction_cone_violation_pct")},
@@ -281,7 +286,8 @@ def main(argv=None) -> None:
         for session, out in args.fitted:
             r = fitted_against_truth(Path(session), Path(out), scratch, cfg)
             print(f"  {Path(session).name}: held {r['held_frames']}/{r['frames']}, hands carry {r['hands_carry_median']:.2f}, "
-                  f"error {r['hands_error_median']:.2f}, contact with hand wrench {r['contact_with_hand_wrench_pct']:.1f} %, "
+                  f"error {r['hands_error_median']:.2f}, contact with hand wrench {r['contact_with_hand_wrench_pct']:.1f} % "
+                  f"({r['contact_frames_unsolved']} contact frames unsolved), "
                   f"residual {r['residual_root_force_pct_bw_mean_fitted']:.1f} (truth {r['residual_root_force_pct_bw_mean_truth']:.1f}, "
                   f"p95 {r['residual_root_force_pct_bw_p95_fitted']:.1f} / {r['residual_root_force_pct_bw_p95_truth']:.1f}) % BW, "
                   f"skating {r['foot_skating_mm_s_fitted']:.0f} (truth {r['foot_skating_mm_s_truth']:.0f}) mm/s, "

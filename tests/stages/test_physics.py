@@ -106,8 +106,9 @@ def test_the_physics_of_a_fitted_carry_balances(tmp_path):
     """A carry fitted by the pipeline (generator `pick_place`, two 160x144 views at 10 fps, masks and
     keypoints given), not its ground truth: while the truth holds the box clear of the floor the hands
     together carry m (a - g) of the true box within 20 % (median), every frame the contact stage finds in
-    contact off the floor has a hand wrench, and the fitted body needs no more unexplained root force
-    than the true motion does (plus 5 % of body weight)."""
+    contact off the floor has a hand wrench (but for a frame or two held through an untrusted object pose,
+    which physics leaves unsolved), and the fitted body needs no more unexplained root force than the true
+    motion does (plus 5 % of body weight)."""
     from intercap.synth.generator import SynthConfig, generate_session
     from tools.bench_physics import fitted_against_truth
 
@@ -121,7 +122,7 @@ def test_the_physics_of_a_fitted_carry_balances(tmp_path):
     print(r)
     assert r["held_frames"] >= 8
     assert 0.8 <= r["hands_carry_median"] <= 1.2 and r["hands_error_median"] < 0.2
-    assert r["contact_with_hand_wrench_pct"] == 100.0
+    assert r["contact_with_hand_wrench_pct"] == 100.0 and r["contact_frames_unsolved"] <= 2
     assert r["residual_root_force_pct_bw_mean_fitted"] <= r["residual_root_force_pct_bw_mean_truth"] + 5.0
 
 

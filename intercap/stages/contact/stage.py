@@ -122,7 +122,7 @@ def overlap_labels(counts: np.ndarray, min_px: np.ndarray, views: int) -> np.nda
     return ((counts > np.asarray(min_px)[None]).sum(1) > views)
 
 
-def _runs(mask: np.ndarray) -> np.ndarray:
+def runs_of(mask: np.ndarray) -> np.ndarray:
     """(K, 2) [start, end) of the runs of True in a (T,) bool array."""
     step = np.diff(np.r_[0, np.asarray(mask, np.int8), 0])
     return np.stack([np.flatnonzero(step == 1), np.flatnonzero(step == -1)], 1)
@@ -133,10 +133,10 @@ def clean_labels(labels: np.ndarray, frames: int) -> np.ndarray:
     out = np.asarray(labels, bool).copy()
     if frames <= 1:
         return out
-    for s, e in _runs(~out):
+    for s, e in runs_of(~out):
         if s > 0 and e < len(out) and e - s < frames:
             out[s:e] = True
-    for s, e in _runs(out):
+    for s, e in runs_of(out):
         if e - s < frames:
             out[s:e] = False
     return out
@@ -150,7 +150,7 @@ def carried_gaps(contact: np.ndarray, centres: np.ndarray, max_frames: int, rest
     lies a little off the object (a 3.5 cm tool handle in a hand fitted from raw input); a hand nearing
     an object at rest, touching it in some frames and not in others, is left as it is."""
     out = np.zeros(len(contact), bool)
-    for first, end in _runs(~np.asarray(contact, bool)):
+    for first, end in runs_of(~np.asarray(contact, bool)):
         if first == 0 or end >= len(contact) or end - first >= max_frames or not np.isfinite(centres[first - 1]).all():
             continue
         moved = np.linalg.norm(centres[first:end + 1] - centres[first - 1], axis=1)
@@ -166,7 +166,7 @@ def untracked_gaps(contact: np.ndarray, judged: np.ndarray, max_frames: int, min
     object was held through it. A gap with a judged frame in it is that frame's to say, and a contact
     frame or two among untrusted ones (an object put down, its few trusted poses wrong) fills nothing."""
     contact, judged = np.asarray(contact, bool), np.asarray(judged, bool)
-    runs = _runs(contact)
+    runs = runs_of(contact)
     out = np.zeros(len(contact), bool)
     for (start, first), (end, last) in zip(runs[:-1], runs[1:]):  # the gap [first, end) between two runs
         if end - first < max_frames and min(first - start, last - end) >= min_run and not judged[first:end].any():
@@ -178,7 +178,7 @@ def neighbours_regions(touching: np.ndarray, frames: np.ndarray) -> np.ndarray:
     """(T, R) `touching` with each run of `frames` (T,) given the regions touching in the frames just
     before and after it."""
     out = touching.copy()
-    for first, end in _runs(frames):
+    for first, end in runs_of(frames):
         out[first:end] = touching[max(first - 1, 0)] | touching[min(end, len(touching) - 1)]
     return out
 

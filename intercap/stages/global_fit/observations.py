@@ -236,11 +236,12 @@ def grasping_hands(contact: np.ndarray, hand_distance: np.ndarray, reach_m: floa
     `reach_m` of it (`hand_distance` (T, 2), inf where unmeasured). A contact frame with neither hand
     measured (the object untrusted there: `contact`'s untracked gaps) takes the hands of the nearest
     measured contact frame of its run."""
+    from intercap.stages.contact.stage import runs_of
+
     contact = np.asarray(contact, bool)
     grasping = contact[:, None] & (hand_distance < reach_m)
     unmeasured = contact & ~np.isfinite(hand_distance).any(1)
-    step = np.diff(np.r_[0, contact.astype(np.int8), 0])
-    for first, end in zip(np.flatnonzero(step == 1), np.flatnonzero(step == -1)):
+    for first, end in runs_of(contact):
         measured = np.flatnonzero(~unmeasured[first:end]) + first
         for k in np.flatnonzero(unmeasured[first:end]) + first:
             if measured.size:

@@ -605,6 +605,49 @@ def test_a_first_pose_a_quarter_turn_off_is_corrected(box_session, tmp_path):
     assert wrong > 15.0 and wrong > 3 * add[0], (wrong, add[0])
 
 
+def test_a_track_that_slid_along_a_thin_tool_is_registered_again_where_its_energy_stays_high():
+    """A long thin tool held across the body can slide along its own length while its ends are hidden,
+    the constant-velocity prediction carrying the slide on; no turn about its centre finds it again.
+    Where E_O has stayed high for object.recheck_frames frames, the object's points are registered
+    again, and a registration clearly better than the track (below object.confirm_ratio of its E_O)
+    takes over; one no better leaves the track alone."""
+    from intercap.stages.object.fitter import Fit
+    from intercap.stages.object.stage import AT_START, check_orientation, untracked
+
+    cfg = load_config().object
+    slid = Fit(np.eye(3), np.array([0.4, 0.0, 0.0]), 1.0, 0.6)  # the track, 0.4 m along the tool from it
+
+    class Tracker:  # what `check_orientation` asks of the tracker, each search answered at once
+        extent = 0.6
+
+        def __init__(self, registered: Fit):
+            self.cfg, self.registered = cfg, registered
+
+        def to_centre(self, R, t):
+            return np.asarray(t)
+
+        def orientation_search(self, obs, fit):
+            return fit, np.full(6, fit.energy)
+            yield
+
+        def initialise(self, obs, extra=None):
+            return self.registered
+            yield
+
+    def checked(registered: Fit):
+        state = untracked(12, 6)
+        state["checked"][0], state["energy"][:10] = AT_START, [0.5] + [1.0] * 9
+        history = [(np.eye(3), np.array([0.4, 0.0, 0.0]))] * 10 + [None] * 2
+        search = check_orientation(Tracker(registered), None, slid, history, state, 10, 10)
+        with pytest.raises(StopIteration) as done:
+            next(search)
+        return done.value.value
+
+    found = Fit(np.eye(3), np.zeros(3), 0.6, 0.7)
+    assert checked(found) == (found, True)
+    assert checked(Fit(np.eye(3), np.zeros(3), 0.95, 0.7)) == (slid, False)
+
+
 def test_orientations_are_the_turns_the_symmetry_leaves():
     """A box-like mesh has 24 axis-aligned turns and 4 symmetries: 6 distinct orientations; a
     cylinder (a cup) 3; a chair, with no symmetry, all 24; a ball 1."""

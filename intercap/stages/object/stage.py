@@ -178,12 +178,20 @@ def orientation_check_due(tracker: ObjectTracker, fit, history: list, state: dic
 def check_orientation(tracker: ObjectTracker, obs, fit, history: list, state: dict, i: int, frame_id: int):
     """Search, returns (fit, turned): frame i's fit, from `ObjectTracker.orientation_search` where a check
     is due (`orientation_check_due`; the best orientation wins at a track's start, elsewhere only
-    where its E_O is below `confirm_ratio` of the fit's); turned: the orientation changed."""
+    where its E_O is below `confirm_ratio` of the fit's). Where E_O has stayed high, the object's points
+    are registered again too (`ObjectTracker.initialise`, as where a track is lost): a long thin tool held
+    across the body can slide along its own length while its ends are hidden, the constant-velocity
+    prediction carrying the slide on, and no turn of it about its centre finds it again. turned: the
+    pose changed."""
     why = orientation_check_due(tracker, fit, history, state, i)
     if not why:
         return fit, False
     best, energies = yield from tracker.orientation_search(obs, fit)
     state["checked"][i], state["orientation_energy"][i] = why, energies
+    if why == AT_HIGH_ENERGY:  # a track can also have slid off: the object's points registered again
+        found = yield from tracker.initialise(obs, extra=[(best.R, best.t)])
+        if found is not None and found.energy < best.energy:
+            best = found
     if best is fit or (why != AT_START and best.energy > tracker.cfg.confirm_ratio * fit.energy):
         return fit, False
     log.info("object: frame %d: orientation checked (%s): E_O %.4g -> %.4g", frame_id, CHECK_NAMES[why], fit.energy,

@@ -621,28 +621,3 @@ def test_the_smoothed_start_follows_a_full_turn_and_takes_out_jitter():
     jitter = lambda x: np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1).mean()  # noqa: E731
     assert jitter(out["transl"]) < jitter(arrays["transl"]) / 3
     assert np.array_equal(out["shape"], arrays["shape"])
-
-
-def test_the_body_acceleration_weight_follows_the_pixels_size_on_the_person(sample):
-    """A pixel's size on the person is each camera's distance to the body over its focal length; the
-    acceleration weight holds where a pixel covers global.acceleration_footprint_mm or more, falls with the
-    square of a finer pixel (a 640x576 rig gets a quarter of a 320x288 rig's weight), and below 10 fps
-    with (fps / 10)^2."""
-    cameras = Cameras.from_infos(sample.cameras)
-    centre = cameras.T_world_from_cam[0, :3, 3].numpy().astype(np.float64)
-    focal = float(cameras.K[0, 0, 0] + cameras.K[0, 1, 1]) / 2
-    transl = np.repeat((centre + 3.0 * np.array([0.6, 0.8, 0.0]))[None], 40, axis=0)
-    valid = np.ones(40, bool)
-    valid[:5] = False
-    transl[:5] = 1.0e3  # frames not fitted do not count
-    one_camera = dataclasses.replace(cameras, K=cameras.K[:1], dist=cameras.dist[:1],
-                                     T_world_from_cam=cameras.T_world_from_cam[:1], width=cameras.width[:1],
-                                     height=cameras.height[:1], names=cameras.names[:1])
-    assert observations.pixel_footprint_mm(one_camera, transl, valid) == pytest.approx(3000.0 / focal, rel=1e-4)
-    assert np.isnan(observations.pixel_footprint_mm(one_camera, transl, np.zeros(40, bool)))
-
-    weight = global_fit.body_acceleration_weight
-    assert weight(40.0, 30, 12.0, 12.0) == weight(40.0, 30, 30.0, 12.0) == 40.0
-    assert weight(40.0, 30, 6.0, 12.0) == pytest.approx(10.0)
-    assert weight(40.0, 5, 12.0, 12.0) == pytest.approx(10.0)
-    assert weight(40.0, 30, float("nan"), 12.0) == 40.0

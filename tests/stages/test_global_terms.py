@@ -141,7 +141,7 @@ def test_a_window_fit_optimises_a_term_added_to_the_table(window):
     with it ends nearer the toy's target than the same fit on the stage's table (the term's own value
     need not fall: the window's acceleration terms move the object too)."""
     *_, body, R0, c0, data = window
-    plain, toy = fitters(window, steps=3, toy_weight=1e6)
+    plain, toy = fitters(window, steps=3, toy_weight=1e4)
     _, _, centre, stats = toy.fit_window(body, R0, c0, 0, data)
     _, _, plain_centre, plain_stats = plain.fit_window(body, R0, c0, 0, data)
     assert "toy_centre" in stats["before"] and "toy_centre" in stats["after"] and "toy_centre" not in plain_stats["after"]

@@ -60,12 +60,8 @@ class GlobalConfig:
     w_hand_contact: float = 1.0e7  # E_C': a grasping palm onto the object's graspable points (metres^2)
     w_ground: float = 1.0e6  # E_G: body and object below the floor, per vertex; stiff, as all views' keypoints agree
     w_object_acceleration: float = 30.0  # E_A: the object's points' acceleration, (m/s^2)^2 per frame
-    w_body_acceleration: float = 40.0  # the body vertices' acceleration, (m/s^2)^2 per frame, at 10 fps and more where a
-    # pixel covers `acceleration_footprint_mm` of the person or more; finer pixels x (footprint / that)^2, slower takes
-    # x (fps/10)^2 (`stage.body_acceleration_weight`): the per-frame fits' noise follows the pixel's size
-    acceleration_footprint_mm: float = 12.3  # mm of the person one pixel covers (distance / focal) from which it holds
-    w_body_acceleration_alone: float = 40.0  # the same in a body-only joint fit, not scaled by the pixel's size (its
-    # slow turns at 640x576 want more smoothing, not less: BENCHMARKS.md); below 10 fps x (fps/10)^2
+    w_body_acceleration: float = 10.0  # the body vertices' acceleration, (m/s^2)^2 per frame; more oversmooths
+    w_body_acceleration_alone: float = 40.0  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
     w_body_motion_prior: float = 0.0  # E_S, the learned (LEMO-style) body motion prior; 0: off (session-dependent)
     w_hand_motion_prior: float = 0.0  # E_L + E_R, the learned hand motion priors; 0: off (used with E_S)
     w_flight: float = 1.0e9  # GraviCap: the object's centre onto the gravity parabola in free flight (m^2); 0: off

@@ -78,20 +78,6 @@ def departed_frames(fit_to_data_mm: np.ndarray, valid: np.ndarray, factor: float
     return out
 
 
-def pixel_footprint_mm(cameras: Cameras, transl: np.ndarray, valid: np.ndarray, frames: int = 32) -> float:
-    """How much of the person one pixel covers, mm: the median over cameras and fitted frames (at most
-    `frames`, spread over the take) of the camera's distance to the body's root over its focal length.
-    NaN without a fitted frame."""
-    fitted = np.flatnonzero(valid)
-    if not len(fitted):
-        return float("nan")
-    picked = fitted[np.unique(np.linspace(0, len(fitted) - 1, min(frames, len(fitted))).round().astype(int))]
-    centres = cameras.T_world_from_cam[:, :3, 3].cpu().numpy().astype(np.float64)  # (C, 3)
-    focal = cameras.K[:, :2, :2].diagonal(dim1=1, dim2=2).mean(dim=1).cpu().numpy()  # (C,)
-    distance = np.linalg.norm(np.asarray(transl, np.float64)[picked, None] - centres[None], axis=-1)  # (F, C)
-    return float(np.median(distance / focal[None]) * 1000.0)
-
-
 def shape_change_mm(model, body: BodyParams, own_shape: np.ndarray, valid: np.ndarray, frames: int = 32) -> float:
     """The largest mean vertex displacement (mm), over up to `frames` fitted frames spread over the take,
     between `body` (its shape the sequence mean) and the same poses with each frame's own phenotype."""

@@ -59,7 +59,6 @@ from intercap.stages.global_fit.observations import (
     load_per_frame,
     no_flight,
     object_inside_body,
-    pixel_footprint_mm,
 )
 
 log = logging.getLogger(__name__)
@@ -151,8 +150,6 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
             "object_left_out": left_out, "frames_repaired": len(repaired),
             "repaired_frame_ids": session.frame_ids[repaired].tolist(),
-            "pixel_footprint_mm": round(problem.footprint_mm, 2),
-            "body_acceleration_weight": round(problem.fitter.weight("body_acceleration"), 2),
             "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio,
             "camera_time_offsets_ms": offsets}
 
@@ -198,14 +195,11 @@ def object_shape(session, g, out_dir: Path) -> ObjectShape:
                        cell_m=g.sdf_cell_m, margin_m=g.sdf_margin_m, cache=out_dir / "global" / "object_sdf.npz")
 
 
-def body_acceleration_weight(weight: float, fps: float, footprint_mm: float, full_footprint_mm: float) -> float:
-    """The body's acceleration weight for a take: `weight` where a pixel covers `full_footprint_mm` of the person
-    or more, x (footprint / that)^2 where it covers less, since a per-frame fit's noise in metres follows the
-    pixel's size (keypoints are found to a pixel or two) and the smoothing a noise needs its variance; and below
-    10 fps x (fps/10)^2, since a slow take's body moves more between frames and the same weight would flatten
-    its motion (BENCHMARKS.md). An unknown footprint (NaN) takes `weight`."""
-    scale = min(1.0, footprint_mm / full_footprint_mm) ** 2 if np.isfinite(footprint_mm) else 1.0
-    return weight * scale * min(1.0, fps / 10.0) ** 2
+def body_alone_acceleration_weight(weight: float, fps: float) -> float:
+    """The body's acceleration weight in a body-only joint fit: `weight` at 10 fps and more; below, x (fps/10)^2,
+    since a slow take's body moves more between frames, and the same weight would flatten its motion
+    (BENCHMARKS.md, body-only joint fit)."""
+    return weight * min(1.0, fps / 10.0) ** 2
 
 
 class GlobalProblem:
@@ -234,11 +228,8 @@ class GlobalProblem:
             if per_frame.hand_distance is None:
                 per_frame.hand_distance = hand_object_distance(self.model, per_frame, self.shape)
             per_frame.grasping = grasping_hands(per_frame.contact, per_frame.hand_distance, g.hand_reach_m)
-        self.footprint_mm = pixel_footprint_mm(self.cameras, per_frame.body.transl.cpu().numpy(), per_frame.body_valid)
-        weight = (body_acceleration_weight(g.w_body_acceleration, session.fps, self.footprint_mm,
-                                           g.acceleration_footprint_mm) if with_object
-                  else body_acceleration_weight(g.w_body_acceleration_alone, session.fps, np.nan, 0.0))
-        weights = dataclasses.replace(g, w_body_acceleration=weight)
+        weights = g if with_object else dataclasses.replace(g, w_body_acceleration=body_alone_acceleration_weight(
+            g.w_body_acceleration_alone, session.fps))
         self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, weights, self.shape, ground, session.fps)
         self.flight = flight = (free_flight(per_frame, self.shape, ground, session.fps, g) if with_object
                                 else no_flight(session.num_frames))

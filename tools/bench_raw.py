@@ -117,7 +117,8 @@ def main(argv=None) -> None:
     parser.add_argument("--frames", type=int, default=None, help="default: the script at natural speed")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--camera-world", action="store_true", help="a camera as the world frame")
-    parser.add_argument("--inputs", default="given,raw", help="given, raw or both")
+    parser.add_argument("--inputs", default="given,raw", choices=("given", "raw", "given,raw", "raw,given"),
+                        help="given, raw, or both as given,raw")
     parser.add_argument("--keep", type=Path, default=None)
     parser.add_argument("--md", type=Path, default=None)
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")

@@ -621,3 +621,25 @@ def test_the_smoothed_start_follows_a_full_turn_and_takes_out_jitter():
     jitter = lambda x: np.linalg.norm(x[2:] - 2 * x[1:-1] + x[:-2], axis=-1).mean()  # noqa: E731
     assert jitter(out["transl"]) < jitter(arrays["transl"]) / 3
     assert np.array_equal(out["shape"], arrays["shape"])
+
+
+def test_the_acceleration_weight_rises_where_the_body_moves_slowly_and_not_for_its_noise(model):
+    """`acceleration_scale` on a body that sways slowly for two seconds (0.3 m/s^2), then swings fast
+    (5 m/s^2), with 5 mm of per-frame noise on its position: the slow frames get the largest factor (the
+    noise is not taken for motion), the fast ones about 1, and off (reference 0) is 1 everywhere."""
+    fps, T = 30.0, 120
+    rng = np.random.default_rng(0)
+    time = np.arange(T) / fps
+    x = np.where(time < 2.0, 0.05 * np.sin(np.pi * time), 0.2 * np.sin(2 * np.pi * (time - 2.0)))
+    transl = np.stack([x, np.zeros(T), np.full(T, 1.0)], 1) + rng.normal(0, 0.005, (T, 3))
+    body = model.init_params(T)
+    body.transl.copy_(torch.as_tensor(transl, dtype=body.transl.dtype))
+    ids = torch.arange(0, model.num_vertices, 50)
+    settings = dict(reference_mps2=4.5, max_scale=4.0, smoothing_s=0.1, start_smoothing_s=0.0, reach_s=0.25)
+    scale = observations.acceleration_scale(model, body, fps, ids, **settings)
+    slow, fast = scale[10:45], scale[75:110]
+    print(f"slow frames x{slow.min():.2f}-{slow.max():.2f}, fast x{fast.min():.2f}-{fast.max():.2f}")
+    assert slow.min() == pytest.approx(4.0)
+    assert fast.max() < 1.5
+    off = observations.acceleration_scale(model, body, fps, ids, **{**settings, "reference_mps2": 0.0})
+    assert np.array_equal(off, np.ones(T))

@@ -507,6 +507,28 @@ def test_seams_are_tracked_across_as_one_process_tracks_them(box_session, tmp_pa
     assert np.array_equal(joined["t"][lo + again:], right["t"][lo + again:])
 
 
+def test_a_chunk_whose_poses_are_turned_is_tracked_again_though_its_surface_lies_near(box_session, tmp_path):
+    """A chunk whose own poses are turned 30 degrees (a small round object tipped over keeps its
+    surface within the ADD-S of its upright pose) does not stand on surface distance alone: with every
+    surface taken to match (`seam_agree_mm` 1 m), the rotation (`seam_agree_deg`) sends the seam's track on
+    to the chunk's end."""
+    from scipy.spatial.transform import Rotation
+
+    from intercap.stages.object.fitter import run_searches
+    from intercap.stages.object.stage import join_seams, track_steps
+
+    cfg = load_config(overrides=["object.seam_agree_mm=1000"])
+    session = Session.load(box_session)
+    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
+    (whole,) = run_searches(tracker, [track_steps(tracker, session.frame_ids, None, session.object.initial_pose)])
+    lo = 4
+    turned = {key: value.copy() for key, value in whole.items()}
+    turned["R"][lo:] = turned["R"][lo:] @ Rotation.from_euler("x", 30, degrees=True).as_matrix()
+    joined, again = join_seams(tracker, session.frame_ids, turned, [lo], tmp_path / "turned")
+    assert again == FRAMES - lo
+    assert np.allclose(joined["R"], whole["R"], atol=1e-4, equal_nan=True)
+
+
 @pytest.mark.parametrize("energy_scale", [1.0, 0.5])
 def test_a_trusted_fit_that_turned_too_fast_is_untrusted(box_session, energy_scale):
     """A fit with a good E_O and IoU that turned 60 degrees in one frame (a look-alike pose one

@@ -60,8 +60,14 @@ class GlobalConfig:
     w_hand_contact: float = 1.0e7  # E_C': a grasping palm onto the object's graspable points (metres^2)
     w_ground: float = 1.0e6  # E_G: body and object below the floor, per vertex; stiff, as all views' keypoints agree
     w_object_acceleration: float = 30.0  # E_A: the object's points' acceleration, (m/s^2)^2 per frame
-    w_body_acceleration: float = 10.0  # the body vertices' acceleration, (m/s^2)^2 per frame; more oversmooths
-    w_body_acceleration_alone: float = 40.0  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
+    w_body_acceleration: float = 10.0  # the body vertices' acceleration, (m/s^2)^2 per frame, in fast motion
+    # where the body moves slowly its acceleration weighs more: per frame x reference / a, within [1, max_scale],
+    # a the start's mean vertex acceleration low-passed (`observations.acceleration_scale`); reference 0: off
+    acceleration_reference_mps2: float = 4.5  # m/s^2: motion this fast or faster keeps the weight as set
+    acceleration_max_scale: float = 8.0  # at most this many times the weight (a person turning on the spot)
+    acceleration_smoothing_s: float = 0.1  # seconds: the start low-passed to this in all to measure its motion
+    acceleration_reach_s: float = 0.25  # seconds: a frame's motion averaged over this (Gaussian sigma) either side
+    w_body_acceleration_alone: float = 10.0  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
     w_body_motion_prior: float = 0.0  # E_S, the learned (LEMO-style) body motion prior; 0: off (session-dependent)
     w_hand_motion_prior: float = 0.0  # E_L + E_R, the learned hand motion priors; 0: off (used with E_S)
     w_flight: float = 1.0e9  # GraviCap: the object's centre onto the gravity parabola in free flight (m^2); 0: off

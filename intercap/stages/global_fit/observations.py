@@ -61,6 +61,8 @@ class PerFrameResults:
     hand_distance: np.ndarray | None  # (T, 2) metres from the left, right hand to the object (None: not measured yet)
     grasping: np.ndarray | None = None  # (T, 2) bool: the hand holds the object (a contact frame, hand within reach)
     repaired: np.ndarray | None = None  # (T,) bool: fitted frames that had left their data, started from their neighbours
+    acceleration_scale: np.ndarray | None = None  # (T,) the body's acceleration weight per frame, x the setting
+    # (`acceleration_scale`: slow motion weighs more); None: 1 everywhere
 
 
 
@@ -114,6 +116,36 @@ def smoothed_start(arrays: dict, sigma_frames: float) -> dict:
             continue
         out[name] = gaussian_filter1d(values, sigma_frames, axis=0, mode="nearest").astype(np.float32)
     return out
+
+
+def acceleration_scale(model, body: BodyParams, fps: float, vertex_ids: torch.Tensor, reference_mps2: float,
+                       max_scale: float, smoothing_s: float, start_smoothing_s: float, reach_s: float) -> np.ndarray:
+    """(T,) the body's acceleration weight per frame, as a factor of its setting: reference / a where the
+    take moves slower than `reference_mps2`, clipped to [1, `max_scale`]. `a` is the body's own motion
+    around the frame: the mean acceleration of the start's vertices `vertex_ids`, low-passed to
+    `smoothing_s` in all (the start is low-passed by `start_smoothing_s` already), so what remains is the
+    motion and not the per-frame fits' noise, then averaged over `reach_s` (Gaussian sigma) either side.
+    A slow take's per-frame noise is large against its motion, and the weight that smooths a fast take
+    leaves it jittering; the one that smooths a slow take flattens a fast one (BENCHMARKS.md)."""
+    from scipy.ndimage import gaussian_filter1d
+
+    T = body.batch_size
+    if reference_mps2 <= 0 or T < 3:
+        return np.ones(T)
+    chunks = []
+    with torch.no_grad():
+        for lo in range(0, T, 256):
+            part = body.map(lambda x: x[lo:lo + 256])
+            chunks.append(model.sparse_forward(part, vertex_ids).vertices.double().cpu().numpy())
+    vertices = np.concatenate(chunks)
+    extra_frames = np.sqrt(max(smoothing_s ** 2 - start_smoothing_s ** 2, 0.0)) * fps
+    if extra_frames >= 0.5:
+        vertices = gaussian_filter1d(vertices, extra_frames, axis=0, mode="nearest")
+    acc = np.linalg.norm(vertices[2:] - 2 * vertices[1:-1] + vertices[:-2], axis=-1).mean(-1) * fps ** 2
+    acc = np.pad(acc, 1, mode="edge")
+    if reach_s * fps >= 0.5:
+        acc = gaussian_filter1d(acc, reach_s * fps, mode="nearest")
+    return np.clip(reference_mps2 / np.maximum(acc, 1e-6), 1.0, max_scale)
 
 
 def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repair=None,
@@ -346,6 +378,7 @@ class WindowData:
     # None when no frame of the window is in flight
     grasp_rows: tuple | None = None  # per hand, (G,) long: the frames where it grasps, found on the host
     # when the window is read (E_C' measures only them); None: every frame, weighted by `grasping`
+    acceleration_scale: torch.Tensor | None = None  # (W,) the body's acceleration weight per frame, x the setting
 
 
 class Observations:
@@ -400,9 +433,12 @@ class Observations:
         device = self.device
         obs = BodyObservations(ids, torch.from_numpy(kps).to(device), torch.from_numpy(points).to(device),
                                torch.from_numpy(point_valid).to(device))
+        scale = getattr(per_frame, "acceleration_scale", None)  # per_frame None: the body's observations alone
+        scale = None if scale is None else torch.as_tensor(scale[frames], dtype=torch.float32, device=device)
         if shape is None:
             none = torch.zeros(B, 2, device=device)
-            return WindowData(obs, None, None, None, torch.zeros(B, device=device), none, grasp_rows=None)
+            return WindowData(obs, None, None, None, torch.zeros(B, device=device), none, grasp_rows=None,
+                              acceleration_scale=scale)
         R = torch.as_tensor(per_frame.R[frames], dtype=torch.float32)
         t = torch.as_tensor(per_frame.t[frames], dtype=torch.float32)
         reference = (shape.samples @ R.transpose(1, 2)) + t[:, None]
@@ -411,7 +447,7 @@ class Observations:
                           torch.as_tensor(per_frame.object_confidence[frames], dtype=torch.float32, device=device),
                           torch.as_tensor(per_frame.grasping[frames], dtype=torch.float32, device=device),
                           grasp_rows=tuple(torch.as_tensor(np.flatnonzero(per_frame.grasping[frames, h]), device=device)
-                                           for h in range(2)))
+                                           for h in range(2)), acceleration_scale=scale)
 
 
 def object_inside_body(session, out_dir: Path, share: float, margin_m: float = 0.02) -> np.ndarray:

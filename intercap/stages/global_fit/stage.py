@@ -53,6 +53,7 @@ from intercap.stages.global_fit.observations import (
     ObjectShape,
     Observations,
     PerFrameResults,
+    acceleration_scale,
     free_flight,
     grasping_hands,
     hand_object_distance,
@@ -149,6 +150,8 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
                  len(repaired), session.frame_ids[repaired].tolist())
     return {**figures, **problem.flight["figures"], "object_frames_inside_body": int(inside.sum()),
             "object_left_out": left_out, "frames_repaired": len(repaired),
+            "body_acceleration_scale_median": float(np.median(problem.per_frame.acceleration_scale)),
+            "body_acceleration_scale_max": float(np.max(problem.per_frame.acceleration_scale)),
             "repaired_frame_ids": session.frame_ids[repaired].tolist(),
             "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio,
             "camera_time_offsets_ms": offsets}
@@ -231,6 +234,9 @@ class GlobalProblem:
         weights = g if with_object else dataclasses.replace(g, w_body_acceleration=body_alone_acceleration_weight(
             g.w_body_acceleration_alone, session.fps))
         self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, weights, self.shape, ground, session.fps)
+        per_frame.acceleration_scale = acceleration_scale(
+            self.model, per_frame.body, session.fps, self.fitter.body.subset, g.acceleration_reference_mps2,
+            g.acceleration_max_scale, g.acceleration_smoothing_s, smoothing_s, g.acceleration_reach_s)
         self.flight = flight = (free_flight(per_frame, self.shape, ground, session.fps, g) if with_object
                                 else no_flight(session.num_frames))
         if flight["episodes"].size and g.w_flight > 0:

@@ -196,8 +196,13 @@ def object_acceleration(ev: GlobalEvaluation) -> torch.Tensor | None:
 
 
 def body_acceleration(ev: GlobalEvaluation) -> torch.Tensor | None:
-    """The acceleration of the window's body vertices."""
-    return losses.vertex_acceleration(ev.vertices, ev.fitter.fps) if len(ev.vertices) >= 3 else None
+    """The acceleration of the window's body vertices, x the frame's weight factor where the take moves
+    slowly (`observations.acceleration_scale`)."""
+    if len(ev.vertices) < 3:
+        return None
+    value = losses.vertex_acceleration(ev.vertices, ev.fitter.fps)
+    scale = ev.data.acceleration_scale
+    return value if scale is None else value * scale
 
 
 def body_motion_prior(ev: GlobalEvaluation) -> torch.Tensor | None:

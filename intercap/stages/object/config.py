@@ -93,4 +93,6 @@ class ObjectConfig:
     seam_agree_frames: int = 3  # a chunk's own poses stand once this many frames tracked on across its seam match them
     seam_agree_mm: float = 10.0  # match: the posed surfaces this close (mm, ADD-S: a symmetric object's look-alike
     # pose matches)
+    seam_agree_deg: float = 10.0  # and the rotations this close, up to the mesh's symmetry (a small cup tipped over
+    # keeps its surface within the ADD-S of its upright pose)
     seed: int = 0  # seeds the mesh's surface samples, RANSAC and torch (a run repeats exactly)

@@ -39,7 +39,7 @@ import cv2
 import numpy as np
 import torch
 
-from intercap.geometry.symmetry import unwrap_symmetry
+from intercap.geometry.symmetry import symmetric_rotation_error_deg, unwrap_symmetry
 from intercap.io.files import publish, save_npz
 from intercap.stages.chunks import Checkpoint, Chunk, chunk_groups, fit_in_chunks
 from intercap.stages.object.fitter import ObjectTracker, predict_pose, run_searches, spin_prediction, turned_too_fast
@@ -306,8 +306,9 @@ def join_seams(tracker: ObjectTracker, frame_ids: np.ndarray, state: dict, start
     A chunk after the first starts cold, from registration; where the object is in a hand and no
     mask separates them, that can lock onto the wrong thing for the whole chunk. Each chunk start
     `lo` (in `starts`) is tracked again from the frames before it until `seam_agree_frames` frames
-    in a row match the chunk's own poses (`seam_agree_mm` of ADD-S: a box's cold start may find it
-    turned by its symmetry; a cold start that was right costs those few frames); from there the
+    in a row match the chunk's own poses (`seam_agree_mm` of ADD-S and `seam_agree_deg` of rotation, both up
+    to the mesh's symmetry: a box's cold start may find it turned by it; a cold start that was right costs
+    those few frames); from there the
     chunk's poses stand. A seam whose frames before it changed is tracked again, until none does;
     the seams of a round side by side. Each keeps a checkpoint named by the frames it starts from
     (OUT/object/seam_LO_SEED.npz). Returns the state and the number of frames tracked again."""
@@ -318,7 +319,11 @@ def join_seams(tracker: ObjectTracker, frame_ids: np.ndarray, state: dict, start
     points = tracker.world_vertices_np(np.eye(3), np.zeros(3))
     points = points[np.linspace(0, len(points) - 1, min(len(points), 500)).astype(int)]
 
-    def matches(a: tuple, b: tuple) -> bool:  # ADD-S of the posed points within seam_agree_mm
+    symmetry = tracker.symmetry()[0]
+
+    def matches(a: tuple, b: tuple) -> bool:  # ADD-S within seam_agree_mm, rotation within seam_agree_deg
+        if symmetric_rotation_error_deg(a[0][None], b[0][None], symmetry)[0] > cfg.seam_agree_deg:
+            return False
         posed_a, posed_b = points @ a[0].T + a[1], points @ b[0].T + b[1]
         return float(cKDTree(posed_a).query(posed_b)[0].mean()) <= cfg.seam_agree_mm / 1000
 

@@ -476,17 +476,25 @@ def test_read_ahead_gives_the_observation_read_in_place(box_session, monkeypatch
     assert derived._ahead == {}
 
 
+def tracked_whole(box_session, cfg):
+    """(session, tracker, state): the box session tracked start to end by one process."""
+    from intercap.stages.object.fitter import run_searches
+    from intercap.stages.object.stage import track_steps
+
+    session = Session.load(box_session)
+    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
+    (whole,) = run_searches(tracker, [track_steps(tracker, session.frame_ids, None, session.object.initial_pose)])
+    return session, tracker, whole
+
+
 def test_seams_are_tracked_across_as_one_process_tracks_them(box_session, tmp_path):
     """A chunk whose cold start locked onto the wrong thing (here 0.5 m off) is tracked again from
     its seam to its end, as one process tracks the take; a chunk that started right keeps its own
     poses after `seam_agree_frames` frames that match them."""
-    from intercap.stages.object.fitter import run_searches
-    from intercap.stages.object.stage import join_seams, track_steps
+    from intercap.stages.object.stage import join_seams
 
     cfg = load_config()
-    session = Session.load(box_session)
-    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
-    (whole,) = run_searches(tracker, [track_steps(tracker, session.frame_ids, None, session.object.initial_pose)])
+    session, tracker, whole = tracked_whole(box_session, cfg)
     lo = 4
     assert np.isin(whole["status"][lo:lo + 3], (1, 2)).all()  # trusted where the seam is checked
 
@@ -514,13 +522,9 @@ def test_a_chunk_whose_poses_are_turned_is_tracked_again_though_its_surface_lies
     to the chunk's end."""
     from scipy.spatial.transform import Rotation
 
-    from intercap.stages.object.fitter import run_searches
-    from intercap.stages.object.stage import join_seams, track_steps
+    from intercap.stages.object.stage import join_seams
 
-    cfg = load_config(overrides=["object.seam_agree_mm=1000"])
-    session = Session.load(box_session)
-    tracker = ObjectTracker(session, cfg.object, session.object.load_mesh())
-    (whole,) = run_searches(tracker, [track_steps(tracker, session.frame_ids, None, session.object.initial_pose)])
+    session, tracker, whole = tracked_whole(box_session, load_config(overrides=["object.seam_agree_mm=1000"]))
     lo = 4
     turned = {key: value.copy() for key, value in whole.items()}
     turned["R"][lo:] = turned["R"][lo:] @ Rotation.from_euler("x", 30, degrees=True).as_matrix()

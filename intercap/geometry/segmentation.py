@@ -125,11 +125,15 @@ def keypoint_depth(depth: np.ndarray, xy: np.ndarray, radius_px: int) -> float:
 
 
 def person_from_keypoints(keypoints: np.ndarray, depth: np.ndarray, focal_px: float, min_confidence: float = 0.3,
-                          depth_band_m: float = 0.2) -> np.ndarray:
+                          depth_band_m: float = 0.2, joint_depth_m: np.ndarray | None = None,
+                          hidden_m: float = 0.5) -> np.ndarray:
     """Pixels of the person's head, trunk, arms and legs, (H, W) bool, from one view's 2D keypoints
     (OpenPose BODY_25 first, pixels) and its depth map: each bone of `PERSON_BONES`, and the face to
     the crown (`CROWN`), drawn as wide as the body part is at its depth, kept where the depth lies
-    within `depth_band_m` of the bone's.
+    within `depth_band_m` of the bone's. A joint's depth is read from the depth map round its keypoint, unless
+    `joint_depth_m` ((25,) metres in this camera, triangulated from all views; 0 or NaN: unknown) lies more than
+    `hidden_m` behind that: the keypoint is hidden behind something (knees behind a table top), whose depth it
+    read, and the thigh's band would take in a box standing on the table as the person.
 
     Where a raw session has no person masks, this keeps the person out of the search for an
     object: without it a head is a box-sized blob of foreground. The hands are not drawn."""
@@ -140,6 +144,9 @@ def person_from_keypoints(keypoints: np.ndarray, depth: np.ndarray, focal_px: fl
     seen = keypoints[:, 2] >= min_confidence
     for k in np.flatnonzero(seen[:25]):
         z[k] = keypoint_depth(depth, keypoints[k, :2], radius)
+        hidden = joint_depth_m is not None and z[k] > 0 and joint_depth_m[k] > z[k] + hidden_m  # NaN: False
+        if hidden:
+            z[k] = joint_depth_m[k]
     xy = keypoints[:, :2]
     bones = [(xy[a], xy[b], z[a], z[b], width) for a, b, width in PERSON_BONES if seen[a] and seen[b]]
     face = [k for k in HEAD_KEYPOINTS if seen[k] and z[k] > 0]

@@ -35,6 +35,29 @@ def test_person_from_keypoints_takes_the_person_and_leaves_a_box_in_front():
     assert not person_from_keypoints(unseen, depth, focal).any()  # below the confidence: nothing drawn
 
 
+def test_a_keypoint_hidden_behind_a_table_takes_its_joints_depth_and_a_box_on_the_table_is_not_the_person():
+    """A person 2 m away behind a table: its top (1.3 m away) hides the knees, a box on it (1.75 m) stands in front
+    of the thighs. The knees' windows read the table's depth, and the thighs' band takes in the box as the
+    person (a search then refuses the box it found as lying on the person). With the joints' depths
+    triangulated from all views (the knees 2.05 m away, more than half a metre behind what their windows read),
+    the box is left out; chest, thighs beside the box and shins below the table stay the person's."""
+    H, W, focal = 240, 320, 250.0
+    depth = np.full((H, W), 3.0, np.float32)
+    cv2.rectangle(depth, (140, 60), (180, 200), 2.0, -1)  # trunk and legs
+    cv2.circle(depth, (160, 45), 12, 2.0, -1)  # head
+    cv2.rectangle(depth, (100, 165), (220, 175), 1.3, -1)  # the table's top, before the knees
+    cv2.rectangle(depth, (147, 125), (173, 164), 1.75, -1)  # the box on it, before the thighs
+    kp = keypoints_at({0: (160, 42), 1: (160, 60), 8: (160, 120), 9: (170, 120), 12: (150, 120), 10: (170, 170),
+                       13: (150, 170), 11: (170, 198), 14: (150, 198), 2: (178, 62), 5: (142, 62)})
+    box = (slice(128, 162), slice(150, 171))
+    assert person_from_keypoints(kp, depth, focal)[box].mean() > 0.5  # the knees read the table's depth
+    joint_depth = np.full(25, np.nan)
+    joint_depth[[8, 9, 12, 10, 13]] = 2.05
+    person = person_from_keypoints(kp, depth, focal, joint_depth_m=joint_depth)
+    assert not person[box].any()
+    assert person[80, 160] and person[140, 143] and person[185, 150] and person[185, 170]
+
+
 def test_person_from_keypoints_takes_the_head_up_to_its_crown():
     """A head seen from behind 3 m away (its ears seen, not its nose), before a far wall without depth:
     it is the person's up to its top. A search for a 0.6 m tool otherwise finds the top of the head, a

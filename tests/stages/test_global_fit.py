@@ -573,6 +573,12 @@ def test_phenotypes_that_disagree_are_kept_per_frame(sample, model, tmp_path):
                     np.zeros(T, bool))
     per_frame = observations.load_per_frame(sample, tmp_path, model, shape_limit_mm=15.0)
     assert np.allclose(per_frame.body.shape.numpy(), split["shape"], atol=1e-6)
+    # low-passed in time, the step between the halves is spread over its neighbours (no jolt of the whole
+    # body in one frame); the frames far from it keep their own
+    per_frame = observations.load_per_frame(sample, tmp_path, model, shape_limit_mm=15.0, shape_smoothing_frames=1.0)
+    shape = per_frame.body.shape.numpy()[:, 1]
+    assert np.abs(np.diff(shape)).max() < 0.5 * 0.3 and np.all(np.diff(shape) >= -1e-6)
+    assert np.allclose(shape[[0, -1]], split["shape"][[0, -1], 1], atol=1e-3)
 
 
 def test_a_one_view_body_only_take_is_smoothed_without_losing_the_person(tmp_path):

@@ -46,6 +46,8 @@ class GlobalConfig:
     start_smoothing_s: float = 0.05  # seconds: the per-frame body low-passed (Gaussian sigma) as the fit's start; 0: off
     start_smoothing_alone_s: float = 0.1  # the same in a body-only joint fit (BENCHMARKS.md: a stronger smoothed start)
     shape_change_limit_mm: float = 15.0  # mm: the sequence-mean phenotype moving a frame's body more: frames keep their own
+    # frames that keep their own phenotype have it low-passed (Gaussian sigma): no step between the body stage's batches
+    shape_smoothing_s: float = 0.2  # seconds; 0: off
 
     # checks of the take (warnings in the log and the report)
     max_keypoint_energy_ratio: float = 3.0  # warn when the fit raises E_J over this many times (fps wrong?); 0: off
@@ -67,7 +69,10 @@ class GlobalConfig:
     acceleration_max_scale: float = 8.0  # at most this many times the weight (a person turning on the spot)
     acceleration_smoothing_s: float = 0.1  # seconds: the start low-passed to this in all to measure its motion
     acceleration_reach_s: float = 0.25  # seconds: a frame's motion averaged over this (Gaussian sigma) either side
-    w_body_acceleration_alone: float = 10.0  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
+    w_body_acceleration_alone: float = 4.0  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
+    # a body-only joint fit takes the scale to this power (its cap too): a person alone moves without the grasps'
+    # and lifts' jolts, so noise shows against slow motion sooner; 1: as with an object
+    acceleration_power_alone: float = 2.0
     w_body_motion_prior: float = 0.0  # E_S, the learned (LEMO-style) body motion prior; 0: off (session-dependent)
     w_hand_motion_prior: float = 0.0  # E_L + E_R, the learned hand motion priors; 0: off (used with E_S)
     w_flight: float = 1.0e9  # GraviCap: the object's centre onto the gravity parabola in free flight (m^2); 0: off

@@ -149,13 +149,16 @@ def acceleration_scale(model, body: BodyParams, fps: float, vertex_ids: torch.Te
 
 
 def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repair=None,
-                   shape_limit_mm: float = np.inf, smoothing_frames: float = 0.0) -> PerFrameResults:
+                   shape_limit_mm: float = np.inf, smoothing_frames: float = 0.0,
+                   shape_smoothing_frames: float = 0.0) -> PerFrameResults:
     """Read OUT/body/, OUT/object/ and the contact stage's labels; clear errors when missing. Without
     the object (`with_object` False: none in the session, or none to refine) its pose is the identity
     and trusted in no frame, and no frame is in contact. `repair` (factor, floor_mm, reach) of
     `departed_frames`: those frames start the joint fit from their neighbours' poses (filled in as gaps
     are), their data then pulls them back; None: every fit as it is. The body's shape is the sequence mean,
-    unless that moves a frame's body by more than `shape_limit_mm` (`shape_change_mm`): each keeps its own then."""
+    unless that moves a frame's body by more than `shape_limit_mm` (`shape_change_mm`): each keeps its own then,
+    low-passed in time (Gaussian, `shape_smoothing_frames`): the body stage's processes each fit theirs on their first
+    batches of frames, and a step between two batches would jolt the whole body in one frame."""
     body_file = per_frame_result(out_dir, "body", "body_params.npz")
     object_file = per_frame_result(out_dir, "object", "object_poses.npz")
     for path, stage in ((body_file, "body"), (object_file, "object"))[:2 if with_object else 1]:
@@ -185,6 +188,10 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
         said = log.warning if multiprocessing.parent_process() is None else log.debug  # once, not per worker
         said("global: the per-frame fits' phenotypes disagree (their mean moves the body by %.0f mm in a "
              "frame: the body stage's processes each held their own); each frame keeps its own", moved)
+        if shape_smoothing_frames >= 0.5:
+            from scipy.ndimage import gaussian_filter1d
+
+            own = gaussian_filter1d(own, shape_smoothing_frames, axis=0, mode="nearest")
         body.shape.copy_(torch.as_tensor(own, dtype=body.shape.dtype))
     if not with_object:
         return PerFrameResults(body, body_valid, np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3)), np.zeros(T, bool),

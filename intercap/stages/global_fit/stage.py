@@ -222,7 +222,8 @@ class GlobalProblem:
         repair = (g.repair_factor, g.repair_floor_mm, g.repair_reach) if g.repair_factor > 0 else None
         smoothing_s = g.start_smoothing_s if with_object else g.start_smoothing_alone_s
         self.per_frame = per_frame = load_per_frame(session, out_dir, self.model, with_object, repair,
-                                                    g.shape_change_limit_mm, smoothing_s * session.fps)
+                                                    g.shape_change_limit_mm, smoothing_s * session.fps,
+                                                    g.shape_smoothing_s * session.fps)
         ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
         if ground is None:
             log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
@@ -236,7 +237,8 @@ class GlobalProblem:
         self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, weights, self.shape, ground, session.fps)
         per_frame.acceleration_scale = acceleration_scale(
             self.model, per_frame.body, session.fps, self.fitter.body.subset, g.acceleration_reference_mps2,
-            g.acceleration_max_scale, g.acceleration_smoothing_s, smoothing_s, g.acceleration_reach_s)
+            g.acceleration_max_scale, g.acceleration_smoothing_s, smoothing_s, g.acceleration_reach_s
+        ) ** (1.0 if with_object else g.acceleration_power_alone)
         self.flight = flight = (free_flight(per_frame, self.shape, ground, session.fps, g) if with_object
                                 else no_flight(session.num_frames))
         if flight["episodes"].size and g.w_flight > 0:

@@ -476,14 +476,15 @@ class ObjectTracker(ObservationReader):
 
     def on_person(self, frame_id: int, obs: Observation) -> float:
         """The share (0-1) of the observation's object pixels that lie on the person drawn from the
-        run's keypoints (`person_hint`; 0 where the session has person masks or there are no
+        run's keypoints (`person_hint`, hidden keypoints at their joints' depths: knees behind a table top would
+        make a box on the table the person's; 0 where the session has person masks or there are no
         keypoints: the person is out of the masks already, or cannot be told)."""
         inside = total = 0
         for c in map(int, np.flatnonzero(obs.has_view)):
             h, w = self.sizes[c]
             if self.session.read_mask(c, frame_id, "person") is not None:
                 continue
-            person = self.person_hint(c, frame_id, obs.depth[c, :h, :w])
+            person = self.person_hint(c, frame_id, obs.depth[c, :h, :w], hidden_joints=True)
             if person is not None:
                 mask = obs.mask[c, :h, :w] > 0.5
                 inside, total = inside + int((mask & person).sum()), total + int(mask.sum())

@@ -136,14 +136,20 @@ class ObservationReader:
         self._colour_images: dict[tuple[int, int], np.ndarray | None] = {}  # `colour_image`: the latest frames'
         self.keypoints = None  # a `KeypointSource` (the run's detections): keeps the person out of a search
 
-    def person_hint(self, c: int, frame_id: int, depth: np.ndarray) -> np.ndarray | None:
-        """View c's person pixels drawn from its 2D keypoints (`person_from_keypoints`) where the
-        session has no person mask; None without keypoints."""
+    def person_hint(self, c: int, frame_id: int, depth: np.ndarray, hidden_joints: bool = False) -> np.ndarray | None:
+        """View c's person pixels drawn from its 2D keypoints (`person_from_keypoints`) where the session has no
+        person mask; None without keypoints. `hidden_joints`: a keypoint hidden behind something takes its joint's
+        depth triangulated from all views (knees behind a table top: a box on the table is not the person)."""
         keypoints = None if self.keypoints is None else self.keypoints.read(c, frame_id)
         if keypoints is None:
             return None
         focal = float(self.cameras.K[c, 0, 0])
-        return person_from_keypoints(keypoints, depth, focal, self.cfg.person_keypoint_confidence)
+        joint_depth = None
+        if hidden_joints:
+            T = self.cameras.T_world_from_cam[c].double().cpu().numpy()
+            joint_depth = (self.person_joints(frame_id) - T[:3, 3]) @ T[:3, 2]  # along the optical axis; NaN: none
+        return person_from_keypoints(keypoints, depth, focal, self.cfg.person_keypoint_confidence,
+                                     joint_depth_m=joint_depth)
 
     def person_joints(self, frame_id: int) -> np.ndarray:
         """World points (25, 3) of the person's BODY_25 joints in a frame, NaN where not found (all

@@ -20,7 +20,7 @@ import torch
 import trimesh
 from scipy.spatial import cKDTree
 
-from intercap.geometry.cameras import Cameras, pixel_rays, project
+from intercap.geometry.cameras import Cameras, pixel_rays, project, world_to_camera
 from intercap.geometry.rendering import crop_observation
 from intercap.geometry.segmentation import (
     ColourLikelihood,
@@ -145,9 +145,10 @@ class ObservationReader:
             return None
         focal = float(self.cameras.K[c, 0, 0])
         joint_depth = None
-        if hidden_joints:
-            T = self.cameras.T_world_from_cam[c].double().cpu().numpy()
-            joint_depth = (self.person_joints(frame_id) - T[:3, 3]) @ T[:3, 2]  # along the optical axis; NaN: none
+        if hidden_joints:  # NaN where a joint is not triangulated
+            joints = torch.as_tensor(self.person_joints(frame_id), dtype=torch.float64)
+            to_camera = self.cameras.T_cam_from_world[c:c + 1].double().cpu()
+            joint_depth = world_to_camera(joints, to_camera)[0, :, 2].numpy()
         return person_from_keypoints(keypoints, depth, focal, self.cfg.person_keypoint_confidence,
                                      joint_depth_m=joint_depth)
 

@@ -38,6 +38,30 @@ def fill_gaps(x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
     return out.reshape(x.shape)
 
 
+def short_gaps(valid: np.ndarray, max_frames: int) -> np.ndarray:
+    """(T,) bool: the invalid frames in runs of at most `max_frames` with valid frames on both sides (a
+    track lost for a moment, which interpolation bridges; not its ends, nor a long loss)."""
+    valid = np.asarray(valid, bool)
+    out = np.zeros(len(valid), bool)
+    if max_frames < 1 or not valid.any():
+        return out
+    edges = np.diff(np.concatenate([[1], valid.astype(np.int8), [1]]))
+    for start, end in zip(np.flatnonzero(edges == -1), np.flatnonzero(edges == 1)):
+        if 0 < start and end < len(valid) and end - start <= max_frames:
+            out[start:end] = True
+    return out
+
+
+def fill_rotations(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(T, 3, 3) rotations with the invalid frames interpolated (`fill_gaps` on the matrices, then the
+    nearest rotation)."""
+    filled = fill_gaps(R, valid)
+    U, _, Vt = np.linalg.svd(filled)
+    D = np.ones((len(R), 3))
+    D[:, 2] = np.sign(np.linalg.det(U @ Vt))
+    return (U * D[:, None]) @ Vt
+
+
 def _savgol_window(T: int, window: int, order: int) -> tuple[int, int]:
     """An odd window no longer than the sequence, and an order below it."""
     w = min(int(window) | 1, T if T % 2 else T - 1)

@@ -370,12 +370,13 @@ def ground_support(points: torch.Tensor, ground_point: torch.Tensor, ground_norm
     return torch.where(bottom < reach_m, torch.relu(bottom).pow(2), torch.zeros_like(bottom))
 
 
-def vertex_acceleration(points: torch.Tensor, fps: float) -> torch.Tensor:
+def vertex_acceleration(points: torch.Tensor, fps: float, weights: torch.Tensor | None = None) -> torch.Tensor:
     """E_A on the object's points, and the plain smoothness term on body vertices: per frame the
     mean squared acceleration of points (W, M, 3) by second differences -> (W,), (m/s^2)^2; the
-    first and last frame have none (0)."""
+    first and last frame have none (0). `weights` (M,), mean 1: each point's share of the mean."""
     acc = (points[2:] - 2 * points[1:-1] + points[:-2]) * fps**2
-    per_frame = acc.pow(2).sum(-1).mean(-1)
+    squared = acc.pow(2).sum(-1)
+    per_frame = (squared if weights is None else squared * weights).mean(-1)
     return torch.nn.functional.pad(per_frame, (1, 1))
 
 

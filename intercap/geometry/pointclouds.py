@@ -1,11 +1,12 @@
 """Point-cloud helpers (numpy + open3d): checking (N, 3) arrays, conversion to open3d,
-fusing the views' world clouds."""
+fusing the views' world clouds, what a subsample's points stand for."""
 from __future__ import annotations
 
 import contextlib
 
 import numpy as np
 import open3d as o3d
+from scipy.spatial import cKDTree
 
 
 def as_points(points, what="points") -> np.ndarray:
@@ -44,3 +45,13 @@ def fuse_points(points_per_view: list[np.ndarray], voxel_size: float) -> np.ndar
     if voxel_size <= 0 or len(merged) == 0:
         return merged
     return np.asarray(to_o3d(merged).voxel_down_sample(float(voxel_size)).points)
+
+
+def nearest_shares(points: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(len(ids),) how many of `points` (N, 3) lie nearest each of the points `ids`, over the mean (mean 1):
+    weights that make a mean over a subsample stand for the mean over all points (a spread-out subsample
+    of a body mesh draws the dense face and hands with few points)."""
+    ids = np.asarray(ids)
+    nearest = cKDTree(as_points(points)[ids]).query(points)[1]
+    counts = np.bincount(nearest, minlength=len(ids)).astype(np.float64)
+    return counts / counts.mean()

@@ -69,10 +69,16 @@ class GlobalConfig:
     acceleration_max_scale: float = 8.0  # at most this many times the weight (a person turning on the spot)
     acceleration_smoothing_s: float = 0.1  # seconds: the start low-passed to this in all to measure its motion
     acceleration_reach_s: float = 0.25  # seconds: a frame's motion averaged over this (Gaussian sigma) either side
-    w_body_acceleration_alone: float = 4.0  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
+    w_body_acceleration_alone: float = 2.2  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
     # a body-only joint fit takes the scale to this power (its cap too): a person alone moves without the grasps'
-    # and lifts' jolts, so noise shows against slow motion sooner; 1: as with an object
-    acceleration_power_alone: float = 2.0
+    # and lifts' jolts, so noise shows against slow motion sooner, while a walk's foot strikes need the weight low;
+    # 1: as with an object
+    acceleration_power_alone: float = 2.5
+    acceleration_max_scale_alone: float = 12.0  # acceleration_max_scale in a body-only joint fit (before the power)
+    # in a body-only joint fit each window vertex weighs as many of the mesh's vertices as lie nearest it at rest,
+    # so the term is the whole mesh's mean (the spread-out fitting subsample draws the dense face and hands with
+    # few vertices, and a turning head jitters); takes with an object keep the plain mean (BENCHMARKS.md)
+    acceleration_over_mesh_alone: bool = True
     w_body_motion_prior: float = 0.0  # E_S, the learned (LEMO-style) body motion prior; 0: off (session-dependent)
     w_hand_motion_prior: float = 0.0  # E_L + E_R, the learned hand motion priors; 0: off (used with E_S)
     w_flight: float = 1.0e9  # GraviCap: the object's centre onto the gravity parabola in free flight (m^2); 0: off

@@ -18,6 +18,7 @@ from intercap.energies import optim
 from intercap.energies.optim import minimise
 from intercap.energies.terms import Term, check_weights, evaluate_terms, weighted_sum
 from intercap.geometry.cameras import Cameras
+from intercap.geometry.pointclouds import nearest_shares
 from intercap.stages.body.fitter import BodyFitter
 from intercap.stages.global_fit.observations import HANDS, GlobalError, ObjectShape, WindowData
 from intercap.stages.global_fit.terms import TERMS, GlobalEvaluation
@@ -76,6 +77,12 @@ class GlobalFitter:
             """The window's vertex slots of model vertices `ids` (read on the host in one `tolist`)."""
             return torch.tensor([position[v] for v in torch.as_tensor(ids).tolist()], device=subset.device)
 
+        self.vertex_shares = None  # (U,) mean 1: the mesh's vertices each window vertex stands for
+        if shape is None and gcfg.acceleration_over_mesh_alone:
+            with torch.no_grad():
+                mesh = model(model.init_params(1, device=subset.device)).vertices[0].double().cpu().numpy()
+            shares = nearest_shares(mesh, self.vertex_ids.cpu().numpy())
+            self.vertex_shares = torch.as_tensor(shares, dtype=torch.float32, device=subset.device)
         self.hand_slots = [slots(r) for r in regions]
         self.prior_slots = {k: slots(p.point_ids) for k, p in self.priors.items()}
         self.free_bones = self.body.free_bones

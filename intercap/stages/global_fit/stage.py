@@ -237,8 +237,8 @@ class GlobalProblem:
         self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, weights, self.shape, ground, session.fps)
         per_frame.acceleration_scale = acceleration_scale(
             self.model, per_frame.body, session.fps, self.fitter.body.subset, g.acceleration_reference_mps2,
-            g.acceleration_max_scale, g.acceleration_smoothing_s, smoothing_s, g.acceleration_reach_s
-        ) ** (1.0 if with_object else g.acceleration_power_alone)
+            g.acceleration_max_scale if with_object else g.acceleration_max_scale_alone, g.acceleration_smoothing_s,
+            smoothing_s, g.acceleration_reach_s) ** (1.0 if with_object else g.acceleration_power_alone)
         self.flight = flight = (free_flight(per_frame, self.shape, ground, session.fps, g) if with_object
                                 else no_flight(session.num_frames))
         if flight["episodes"].size and g.w_flight > 0:

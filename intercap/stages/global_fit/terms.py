@@ -196,11 +196,12 @@ def object_acceleration(ev: GlobalEvaluation) -> torch.Tensor | None:
 
 
 def body_acceleration(ev: GlobalEvaluation) -> torch.Tensor | None:
-    """The acceleration of the window's body vertices, x the frame's weight factor where the take moves
-    slowly (`observations.acceleration_scale`)."""
+    """The acceleration of the window's body vertices (in a body-only fit each weighing as many of the mesh's
+    vertices as lie nearest it, `global.acceleration_over_mesh_alone`), x the frame's weight factor where the
+    take moves slowly (`observations.acceleration_scale`)."""
     if len(ev.vertices) < 3:
         return None
-    value = losses.vertex_acceleration(ev.vertices, ev.fitter.fps)
+    value = losses.vertex_acceleration(ev.vertices, ev.fitter.fps, ev.fitter.vertex_shares)
     scale = ev.data.acceleration_scale
     return value if scale is None else value * scale
 

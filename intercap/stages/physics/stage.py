@@ -296,6 +296,7 @@ class ObjectTrack:
     mass: float = float("nan")
     mass_source: str = "no object"
     valid: np.ndarray = None  # (T,) bool
+    filled: np.ndarray = None  # (T,) bool: not tracked, bridged by interpolation (`physics.object_gap_fill_s`)
     centres: np.ndarray = None  # (T, 3) centre of mass, NaN where not tracked
     on_ground: np.ndarray = None  # (T,) bool
     wrench: np.ndarray | None = None  # (T, 6)
@@ -322,6 +323,11 @@ def track_object(out_dir: Path, session, T: int, point, up, pc, fps: float, filt
         R_obj, t_obj = z["R"].astype(np.float64), z["t"].astype(np.float64)
         obj_valid = z["valid"].astype(bool) if "valid" in z else np.ones(T, bool)
     obj_valid &= np.isfinite(R_obj).all((1, 2)) & np.isfinite(t_obj).all(1)
+    track.filled = kin.short_gaps(obj_valid, int(round(pc.object_gap_fill_s * fps)))
+    if track.filled.any():  # an object lost for a moment while the hands carry it: its weight stays on them
+        R_obj = np.where(track.filled[:, None, None], kin.fill_rotations(R_obj, obj_valid), R_obj)
+        t_obj = np.where(track.filled[:, None], kin.fill_gaps(t_obj, obj_valid), t_obj)
+        obj_valid = obj_valid | track.filled
     track.valid = obj_valid
     mesh = obj_info.load_mesh()
     track.mass, track.mass_source = mass_model.object_mass(obj_info.mass_kg, getattr(obj_info, "density_kg_m3", None),
@@ -606,6 +612,7 @@ def physics_figures(arrays: dict, mass: float, body_source: str, obj: ObjectTrac
                           else "skipped: object tracked in no frame" if not obj.valid.any()
                           else f"skipped: object mass {obj.mass_source}"),
         "ground_source": ground_source, "frames_valid": int(valid.sum()),
+        "object_frames_filled": 0 if obj.filled is None else int(obj.filled.sum()),
         "supports": [str(n) for n in arrays["support_names"]],
     })
     if len(arrays["support_names"]) and valid.any():

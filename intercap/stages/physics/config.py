@@ -26,8 +26,8 @@ class PhysicsConfig:
     static_object_deg: float = 5.0  # ... nor turns this far (deg)
     torque_weight: float = 1e-2  # joint-torque prior that shares a load between contacts, (N m)^-2; 0: none
     object_weight: float = 10.0  # weight of the object's wrench equations against the body's (least squares)
-    # the object's untracked frames in a gap this short (s) between tracked ones are interpolated, so the hands
-    # that carry it through the gap carry its weight; 0: off
+    # the object's untracked frames in contact, in a gap this short (s) between tracked ones, are interpolated, so
+    # the hands that carry it through the gap carry its weight; 0: off
     object_gap_fill_s: float = 0.5
     flight_min_frames: int = 8  # shortest free flight (object touching neither body nor floor), frames
     flight_max_residual_m: float = 0.05  # ... and a parabola under gravity within this (m, RMS) of its path

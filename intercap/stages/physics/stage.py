@@ -323,8 +323,11 @@ def track_object(out_dir: Path, session, T: int, point, up, pc, fps: float, filt
         R_obj, t_obj = z["R"].astype(np.float64), z["t"].astype(np.float64)
         obj_valid = z["valid"].astype(bool) if "valid" in z else np.ones(T, bool)
     obj_valid &= np.isfinite(R_obj).all((1, 2)) & np.isfinite(t_obj).all(1)
-    track.filled = kin.short_gaps(obj_valid, int(round(pc.object_gap_fill_s * fps)))
-    if track.filled.any():  # an object lost for a moment while the hands carry it: its weight stays on them
+    hands = hand_contacts(out_dir, T)
+    # an object lost for a moment while a hand touches it: interpolated, so its weight stays on the hands (not
+    # in free flight, where a straight line would take gravity out of its path)
+    track.filled = kin.short_gaps(obj_valid, int(round(pc.object_gap_fill_s * fps))) & hands.any(1)
+    if track.filled.any():
         R_obj = np.where(track.filled[:, None, None], kin.fill_rotations(R_obj, obj_valid), R_obj)
         t_obj = np.where(track.filled[:, None], kin.fill_gaps(t_obj, obj_valid), t_obj)
         obj_valid = obj_valid | track.filled
@@ -344,7 +347,7 @@ def track_object(out_dir: Path, session, T: int, point, up, pc, fps: float, filt
     heights = (track.points - point) @ up
     track.ground_active = np.nan_to_num(heights, nan=np.inf) < pc.object_ground_m
     track.on_ground = track.ground_active.any(1)
-    track.hand_active = hand_contacts(out_dir, T) & obj_valid[:, None]
+    track.hand_active = hands & obj_valid[:, None]
     # furniture: marked static, or never moves and stands on the floor or is never touched (a box held
     # still in the air never moves either, but the hands carry it)
     track.static = obj_info.static or (

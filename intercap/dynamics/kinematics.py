@@ -41,12 +41,13 @@ def fill_gaps(x: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
 def short_gaps(valid: np.ndarray, max_frames: int) -> np.ndarray:
     """(T,) bool: the invalid frames in runs of at most `max_frames` with valid frames on both sides (a
     track lost for a moment, which interpolation bridges; not its ends, nor a long loss)."""
+    from intercap.stages.contact.stage import runs_of
+
     valid = np.asarray(valid, bool)
     out = np.zeros(len(valid), bool)
     if max_frames < 1 or not valid.any():
         return out
-    edges = np.diff(np.concatenate([[1], valid.astype(np.int8), [1]]))
-    for start, end in zip(np.flatnonzero(edges == -1), np.flatnonzero(edges == 1)):
+    for start, end in runs_of(~valid):
         if 0 < start and end < len(valid) and end - start <= max_frames:
             out[start:end] = True
     return out

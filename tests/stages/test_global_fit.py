@@ -629,6 +629,37 @@ def test_the_smoothed_start_follows_a_full_turn_and_takes_out_jitter():
     assert np.array_equal(out["shape"], arrays["shape"])
 
 
+def test_the_start_is_smoothed_widely_where_the_body_drifts_and_narrowly_through_a_quick_dip():
+    """`adaptive_smoothing_frames` on 40 points drifting at 0.3 m/s for 6 s (15 fps) with a 35 cm dip of
+    0.25 s (Gaussian sigma) at 4 s, 1 cm of noise per frame: the drift takes the widest width and is then as
+    close to the truth as the widest Gaussian smooths it, the dip the narrowest and is kept as the narrowest
+    keeps it (the widest flattens it to over three times the error); one width for every frame is scipy's."""
+    from scipy.ndimage import gaussian_filter1d
+
+    fps, T = 15.0, 90
+    time = np.arange(T) / fps
+    rng = np.random.default_rng(0)
+    path = np.zeros((T, 1, 3))
+    path[:, 0, 0] = 0.3 * time
+    path[:, 0, 2] = -0.35 * np.exp(-0.5 * ((time - 4.0) / 0.25) ** 2)
+    truth = rng.normal(0, 0.2, (1, 40, 3)) + path
+    noisy = truth + rng.normal(0, 0.01, truth.shape)
+    levels = 1.5 * 3 ** np.linspace(0, 1, 4)
+    widths = observations.adaptive_smoothing_frames(noisy, levels, 1.0)
+    drift, dip = slice(10, 38), slice(55, 65)
+    assert np.all(widths[drift] == levels[-1]) and np.all(widths[dip] == levels[0])
+    fits = {"adaptive": observations.gaussian_low_pass(noisy, widths)}
+    for name, width in (("narrow", levels[0]), ("wide", levels[-1])):
+        fits[name] = gaussian_filter1d(noisy, width, axis=0, mode="nearest")
+    error = {name: np.linalg.norm(fit - truth, axis=-1).mean(1) * 1000 for name, fit in fits.items()}
+    print({name: (round(float(e[drift].mean()), 2), round(float(e[dip].mean()), 2)) for name, e in error.items()},
+          "mm (drift, dip)")
+    assert error["adaptive"][drift].mean() < 1.1 * error["wide"][drift].mean() < 0.75 * error["narrow"][drift].mean()
+    assert error["adaptive"][dip].mean() < 1.1 * error["narrow"][dip].mean() < 0.3 * error["wide"][dip].mean()
+    same = observations.gaussian_low_pass(noisy, np.full(T, levels[1]))
+    np.testing.assert_allclose(same, gaussian_filter1d(noisy, levels[1], axis=0, mode="nearest"), atol=1e-9)
+
+
 def test_the_acceleration_weight_rises_where_the_body_moves_slowly_and_not_for_its_noise(model):
     """`acceleration_scale` on a body that sways slowly for two seconds (0.3 m/s^2), then swings fast
     (5 m/s^2), with 5 mm of per-frame noise on its position: the slow frames get the largest factor (the

@@ -45,6 +45,10 @@ class GlobalConfig:
 
     start_smoothing_s: float = 0.05  # seconds: the per-frame body low-passed (Gaussian sigma) as the fit's start; 0: off
     start_smoothing_alone_s: float = 0.1  # the same in a body-only joint fit (BENCHMARKS.md: a stronger smoothed start)
+    # a body-only joint fit's start is low-passed more where the per-frame fits' noise hides no motion, up to this
+    # (seconds, `observations.adaptive_smoothing_frames`): a slow turn's start is smoothed widely, a bend's peak kept
+    start_smoothing_most_alone_s: float = 0.3
+    start_smoothing_confidence_alone: float = 1.0  # its confidence interval, in noise x kernel norms (BENCHMARKS.md)
     shape_change_limit_mm: float = 15.0  # mm: the sequence-mean phenotype moving a frame's body more: frames keep their own
     # frames that keep their own phenotype have it low-passed (Gaussian sigma): no step between the body stage's batches
     shape_smoothing_s: float = 0.2  # seconds; 0: off

@@ -63,6 +63,8 @@ class PerFrameResults:
     repaired: np.ndarray | None = None  # (T,) bool: fitted frames that had left their data, started from their neighbours
     acceleration_scale: np.ndarray | None = None  # (T,) the body's acceleration weight per frame, x the setting
     # (`acceleration_scale`: slow motion weighs more); None: 1 everywhere
+    start_widths: np.ndarray | None = None  # (T,) frames: each frame's Gaussian width of the start; None: one width
+    motion: BodyParams | None = None  # the start at its least width, where the take's motion is measured; None: body
 
 
 
@@ -96,12 +98,60 @@ def shape_change_mm(model, body: BodyParams, own_shape: np.ndarray, valid: np.nd
 SMOOTHED = ("global_orient", "transl", "body_pose", "left_hand_pose", "right_hand_pose")
 
 
-def smoothed_start(arrays: dict, sigma_frames: float) -> dict:
-    """The per-frame parameters (T, ...) low-passed in time (Gaussian, `sigma_frames`), the joint fit's
-    start: frame-to-frame noise of the per-frame fits is the stiffest part of the acceleration term, which a
-    few L-BFGS steps leave mostly in place at 30 fps. The root's rotation is low-passed as a quaternion of
-    one sign (a person turning round passes every angle), the joints' small rotations as axis-angle."""
+def gaussian_low_pass(values: np.ndarray, sigma_frames) -> np.ndarray:
+    """`values` (T, ...) low-passed in time by a Gaussian of `sigma_frames`: one width, or (T,) one per
+    frame (each frame the weighted mean of the frames around it by its own width); the ends repeat the
+    first and last frames, as `scipy.ndimage.gaussian_filter1d`'s mode "nearest" does."""
     from scipy.ndimage import gaussian_filter1d
+
+    if np.ndim(sigma_frames) == 0:
+        return gaussian_filter1d(values, float(sigma_frames), axis=0, mode="nearest")
+    sigma = np.maximum(np.asarray(sigma_frames, np.float64), 1e-3)
+    reach = int(np.ceil(4 * sigma.max()))
+    offsets = np.arange(-reach, reach + 1)
+    weights = np.exp(-0.5 * (offsets[None] / sigma[:, None]) ** 2)  # (T, 2 reach + 1)
+    weights /= weights.sum(1, keepdims=True)
+    index = np.clip(np.arange(len(values))[:, None] + offsets[None], 0, len(values) - 1)
+    return np.concatenate([np.einsum("tk,tk...->t...", weights[lo:lo + 256], values[index[lo:lo + 256]])
+                           for lo in range(0, len(values), 256)])  # 256 frames at a time: a long take's memory
+
+
+def adaptive_smoothing_frames(vertices: np.ndarray, levels: np.ndarray, confidence: float) -> np.ndarray:
+    """(T,) the widest of the Gaussian widths `levels` (frames, ascending) that each frame's body, vertices
+    (T, U, 3) of the per-frame fits, can be low-passed by without moving it further than their noise
+    explains: the intersection of confidence intervals (Katkovnik's ICI rule) on the mean vertex. A level's
+    estimate differs from each narrower one's by at most `confidence` x the noise x both kernels' norms;
+    where motion bends faster than the noise, a wide Gaussian departs from the narrow ones and is refused.
+    The noise is the per-frame fits' own, from their second differences (white noise: sqrt(6) x its size),
+    around each frame. A frame takes the narrowest width chosen within its reach, so that the fast part of
+    a take is not flattened by the slow frames beside it."""
+    from scipy.ndimage import gaussian_filter1d, minimum_filter1d
+
+    T = len(vertices)
+    levels = np.asarray(levels, np.float64)
+    if T < 5:
+        return np.full(T, levels[0])
+    second = np.linalg.norm(vertices[2:] - 2 * vertices[1:-1] + vertices[:-2], axis=-1).mean(-1) / np.sqrt(6.0)
+    noise = gaussian_filter1d(np.pad(second, 1, mode="edge"), max(levels[-1], 1.0) * 2, mode="nearest")
+    estimates = [gaussian_filter1d(vertices, level, axis=0, mode="nearest") for level in levels]
+    norms = 1.0 / np.sqrt(2.0 * np.sqrt(np.pi) * np.maximum(levels, 0.5))  # a Gaussian kernel's L2 norm
+    chosen = np.zeros(T, int)
+    agree = np.ones(T, bool)
+    for j in range(1, len(levels)):
+        for i in range(j):
+            apart = np.linalg.norm(estimates[j] - estimates[i], axis=-1).mean(-1)
+            agree &= apart <= confidence * noise * (norms[i] + norms[j])
+        chosen[agree] = j
+    sigma = levels[chosen]
+    return np.minimum(sigma, minimum_filter1d(sigma, 2 * int(np.ceil(levels[-1])) + 1, mode="nearest"))
+
+
+def smoothed_start(arrays: dict, sigma_frames) -> dict:
+    """The per-frame parameters (T, ...) low-passed in time (Gaussian, `sigma_frames`: one width or one per
+    frame), the joint fit's start: frame-to-frame noise of the per-frame fits is the stiffest part of the
+    acceleration term, which a few L-BFGS steps leave mostly in place at 30 fps. The root's rotation is
+    low-passed as a quaternion of one sign (a person turning round passes every angle), the joints' small
+    rotations as axis-angle."""
     from scipy.spatial.transform import Rotation
 
     out = dict(arrays)
@@ -111,10 +161,10 @@ def smoothed_start(arrays: dict, sigma_frames: float) -> dict:
             q = Rotation.from_rotvec(values).as_quat()
             turns = np.sign(np.einsum("ti,ti->t", q[1:], q[:-1]) + 1e-12)  # -1 where a frame's sign flipped
             q *= np.concatenate([[1.0], np.cumprod(turns)])[:, None]
-            q = gaussian_filter1d(q, sigma_frames, axis=0, mode="nearest")
+            q = gaussian_low_pass(q, sigma_frames)
             out[name] = Rotation.from_quat(q / np.linalg.norm(q, axis=1, keepdims=True)).as_rotvec().astype(np.float32)
             continue
-        out[name] = gaussian_filter1d(values, sigma_frames, axis=0, mode="nearest").astype(np.float32)
+        out[name] = gaussian_low_pass(values, sigma_frames).astype(np.float32)
     return out
 
 
@@ -148,9 +198,22 @@ def acceleration_scale(model, body: BodyParams, fps: float, vertex_ids: torch.Te
     return np.clip(reference_mps2 / np.maximum(acc, 1e-6), 1.0, max_scale)
 
 
+def start_smoothing_frames(model, arrays: dict, least_frames: float, most_frames: float, confidence: float,
+                           vertex_step: int = 32) -> np.ndarray:
+    """(T,) each frame's width of the smoothed start, from `least_frames` up to `most_frames`
+    (`adaptive_smoothing_frames` on every `vertex_step`-th vertex of the per-frame fits)."""
+    levels = least_frames * (most_frames / least_frames) ** np.linspace(0.0, 1.0, 4)
+    body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
+    ids = torch.arange(0, model.num_vertices, vertex_step, device=model.faces.device)
+    with torch.no_grad():
+        vertices = np.concatenate([model.sparse_forward(body.map(lambda x: x[lo:lo + 256]), ids).vertices.float()
+                                   .cpu().numpy() for lo in range(0, body.batch_size, 256)])
+    return adaptive_smoothing_frames(vertices, levels, confidence)
+
+
 def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repair=None,
                    shape_limit_mm: float = np.inf, smoothing_frames: float = 0.0,
-                   shape_smoothing_frames: float = 0.0) -> PerFrameResults:
+                   shape_smoothing_frames: float = 0.0, adaptive_smoothing=None) -> PerFrameResults:
     """Read OUT/body/, OUT/object/ and the contact stage's labels; clear errors when missing. Without
     the object (`with_object` False: none in the session, or none to refine) its pose is the identity
     and trusted in no frame, and no frame is in contact. `repair` (factor, floor_mm, reach) of
@@ -158,7 +221,9 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
     are), their data then pulls them back; None: every fit as it is. The body's shape is the sequence mean,
     unless that moves a frame's body by more than `shape_limit_mm` (`shape_change_mm`): each keeps its own then,
     low-passed in time (Gaussian, `shape_smoothing_frames`): the body stage's processes each fit theirs on their first
-    batches of frames, and a step between two batches would jolt the whole body in one frame."""
+    batches of frames, and a step between two batches would jolt the whole body in one frame. `adaptive_smoothing`
+    (most_frames, confidence): each frame's start is low-passed by its own width, from `smoothing_frames` up to
+    most_frames (`start_smoothing_frames`), and `motion` keeps the start at `smoothing_frames`."""
     body_file = per_frame_result(out_dir, "body", "body_params.npz")
     object_file = per_frame_result(out_dir, "object", "object_poses.npz")
     for path, stage in ((body_file, "body"), (object_file, "object"))[:2 if with_object else 1]:
@@ -178,8 +243,14 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
         if repaired.all():  # nothing to start them from
             repaired[:] = False
     arrays = {k: fill_gaps(saved[k], body_valid & ~repaired).astype(np.float32) for k in PARAM_FIELDS}
+    widths, motion = None, None
     if smoothing_frames >= 0.5:  # below half a frame the filter would hardly touch the fits
-        arrays = smoothed_start(arrays, smoothing_frames)
+        if adaptive_smoothing is not None:
+            widths = start_smoothing_frames(model, arrays, smoothing_frames, *adaptive_smoothing)
+            motion = smoothed_start(arrays, smoothing_frames)
+            arrays = smoothed_start(arrays, widths)
+        else:
+            arrays = smoothed_start(arrays, smoothing_frames)
     own = arrays["shape"].copy()
     arrays["shape"][:] = saved["shape_mean"]
     body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
@@ -193,10 +264,14 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
 
             own = gaussian_filter1d(own, shape_smoothing_frames, axis=0, mode="nearest")
         body.shape.copy_(torch.as_tensor(own, dtype=body.shape.dtype))
+    if motion is not None:
+        motion = BodyParams.from_numpy_dict({**motion, "shape": body.shape.cpu().numpy()}, dtype=model.dtype,
+                                            device=model.faces.device)
+    start = dict(start_widths=widths, motion=motion)
     if not with_object:
         return PerFrameResults(body, body_valid, np.tile(np.eye(3), (T, 1, 1)), np.zeros((T, 3)), np.zeros(T, bool),
                                np.zeros(T), np.zeros(T, bool), np.full((T, 2), np.inf), np.zeros((T, 2), bool),
-                               repaired)
+                               repaired, **start)
 
     poses = np.load(object_file)
     object_valid = poses["valid"].astype(bool)
@@ -212,7 +287,8 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
     confidence = np.where(object_valid, np.nan_to_num(poses["confidence"]), 0.0)
 
     contact, hand_distance = load_contact_labels(out_dir, session.num_frames)
-    return PerFrameResults(body, body_valid, R, t, object_valid, confidence, contact, hand_distance, None, repaired)
+    return PerFrameResults(body, body_valid, R, t, object_valid, confidence, contact, hand_distance, None, repaired,
+                           **start)
 
 
 

@@ -152,6 +152,7 @@ def run(session, cfg, out_dir: Path, progress: bool = True) -> dict:
             "object_left_out": left_out, "frames_repaired": len(repaired),
             "body_acceleration_scale_median": float(np.median(problem.per_frame.acceleration_scale)),
             "body_acceleration_scale_max": float(np.max(problem.per_frame.acceleration_scale)),
+            **start_width_figures(problem.per_frame.start_widths, session.fps),
             "repaired_frame_ids": session.frame_ids[repaired].tolist(),
             "workers": len(chunks), "pelvis_speed_p90_mps": speed, "keypoint_energy_ratio": ratio,
             "camera_time_offsets_ms": offsets}
@@ -198,6 +199,14 @@ def object_shape(session, g, out_dir: Path) -> ObjectShape:
                        cell_m=g.sdf_cell_m, margin_m=g.sdf_margin_m, cache=out_dir / "global" / "object_sdf.npz")
 
 
+def start_width_figures(widths: np.ndarray | None, fps: float) -> dict:
+    """Metrics of the smoothed start's widths per frame (seconds), where they vary (a body-only fit)."""
+    if widths is None:
+        return {}
+    return {f"start_smoothing_s_{name}": float(value / fps)
+            for name, value in (("min", widths.min()), ("median", np.median(widths)), ("max", widths.max()))}
+
+
 def body_alone_acceleration_weight(weight: float, fps: float) -> float:
     """The body's acceleration weight in a body-only joint fit: `weight` at 10 fps and more; below, x (fps/10)^2,
     since a slow take's body moves more between frames, and the same weight would flatten its motion
@@ -223,7 +232,9 @@ class GlobalProblem:
         smoothing_s = g.start_smoothing_s if with_object else g.start_smoothing_alone_s
         self.per_frame = per_frame = load_per_frame(session, out_dir, self.model, with_object, repair,
                                                     g.shape_change_limit_mm, smoothing_s * session.fps,
-                                                    g.shape_smoothing_s * session.fps)
+                                                    g.shape_smoothing_s * session.fps, None if with_object else (
+                                                        g.start_smoothing_most_alone_s * session.fps,
+                                                        g.start_smoothing_confidence_alone))
         ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
         if ground is None:
             log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
@@ -236,7 +247,8 @@ class GlobalProblem:
             g.w_body_acceleration_alone, session.fps))
         self.fitter = GlobalFitter(self.model, self.cameras, cfg.body, weights, self.shape, ground, session.fps)
         per_frame.acceleration_scale = acceleration_scale(
-            self.model, per_frame.body, session.fps, self.fitter.body.subset, g.acceleration_reference_mps2,
+            self.model, per_frame.body if per_frame.motion is None else per_frame.motion, session.fps,
+            self.fitter.body.subset, g.acceleration_reference_mps2,
             g.acceleration_max_scale if with_object else g.acceleration_max_scale_alone, g.acceleration_smoothing_s,
             smoothing_s, g.acceleration_reach_s) ** (1.0 if with_object else g.acceleration_power_alone)
         self.flight = flight = (free_flight(per_frame, self.shape, ground, session.fps, g) if with_object

@@ -660,6 +660,24 @@ def test_the_start_is_smoothed_widely_where_the_body_drifts_and_narrowly_through
     np.testing.assert_allclose(same, gaussian_filter1d(noisy, levels[1], axis=0, mode="nearest"), atol=1e-9)
 
 
+def test_the_body_acceleration_is_not_measured_into_a_second_out_of_view():
+    """A person unseen for a second (frames 30-59 at 30 fps, filled with a straight path from where they left
+    to where they came back): the body's acceleration term is off at every frame whose acceleration reaches
+    into the gap (29-60), so the path's turns do not pull the frames in view off their data; a gap of four
+    frames (a dropped frame or two) is bridged by the term as before."""
+    T, fps = 90, 30.0
+    seen = np.ones(T, bool)
+    seen[30:60] = False
+    keep = observations.acceleration_across_gaps(seen, 0.25 * fps)
+    assert np.flatnonzero(keep == 0).tolist() == list(range(29, 61))
+    short = np.ones(T, bool)
+    short[40:44] = False
+    assert np.all(observations.acceleration_across_gaps(short, 0.25 * fps) == 1)
+    at_start = np.ones(T, bool)
+    at_start[:20] = False
+    assert np.flatnonzero(observations.acceleration_across_gaps(at_start, 0.25 * fps) == 0).tolist() == list(range(21))
+
+
 def test_the_acceleration_weight_rises_where_the_body_moves_slowly_and_not_for_its_noise(model):
     """`acceleration_scale` on a body that sways slowly for two seconds (0.3 m/s^2), then swings fast
     (5 m/s^2), with 5 mm of per-frame noise on its position: the slow frames get the largest factor (the

@@ -73,6 +73,7 @@ class GlobalConfig:
     acceleration_max_scale: float = 8.0  # at most this many times the weight (a person turning on the spot)
     acceleration_smoothing_s: float = 0.1  # seconds: the start low-passed to this in all to measure its motion
     acceleration_reach_s: float = 0.25  # seconds: a frame's motion averaged over this (Gaussian sigma) either side
+    acceleration_gap_s: float = 0.25  # seconds: frames with no body fit for longer (out of view) break the body's term
     w_body_acceleration_alone: float = 2.2  # the same in a body-only joint fit, at 10 fps and more; below, x (fps/10)^2
     # a body-only joint fit takes the scale to this power (its cap too): a person alone moves without the grasps'
     # and lifts' jolts, so noise shows against slow motion sooner, while a walk's foot strikes need the weight low;

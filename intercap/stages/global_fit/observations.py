@@ -198,6 +198,19 @@ def acceleration_scale(model, body: BodyParams, fps: float, vertex_ids: torch.Te
     return np.clip(reference_mps2 / np.maximum(acc, 1e-6), 1.0, max_scale)
 
 
+def acceleration_across_gaps(valid: np.ndarray, longest_frames: float) -> np.ndarray:
+    """(T,) 1, or 0 at frames whose acceleration (the frame and the one either side) reaches into a run of
+    frames without a body fit longer than `longest_frames`: the person was out of view, and the straight
+    path the gap is filled with would pull the last and first frames in view off their data."""
+    from intercap.stages.contact.stage import runs_of
+
+    keep = np.ones(len(valid))
+    for start, end in runs_of(~np.asarray(valid, bool)):
+        if end - start > longest_frames:
+            keep[max(start - 1, 0):end + 1] = 0.0
+    return keep
+
+
 def start_smoothing_frames(model, arrays: dict, least_frames: float, most_frames: float, confidence: float,
                            vertex_step: int = 32) -> np.ndarray:
     """(T,) each frame's width of the smoothed start, from `least_frames` up to `most_frames`

@@ -53,6 +53,7 @@ from intercap.stages.global_fit.observations import (
     ObjectShape,
     Observations,
     PerFrameResults,
+    acceleration_across_gaps,
     acceleration_scale,
     free_flight,
     grasping_hands,
@@ -251,6 +252,8 @@ class GlobalProblem:
             self.fitter.body.subset, g.acceleration_reference_mps2,
             g.acceleration_max_scale if with_object else g.acceleration_max_scale_alone, g.acceleration_smoothing_s,
             smoothing_s, g.acceleration_reach_s) ** (1.0 if with_object else g.acceleration_power_alone)
+        per_frame.acceleration_scale *= acceleration_across_gaps(per_frame.body_valid,
+                                                                 g.acceleration_gap_s * session.fps)
         self.flight = flight = (free_flight(per_frame, self.shape, ground, session.fps, g) if with_object
                                 else no_flight(session.num_frames))
         if flight["episodes"].size and g.w_flight > 0:

@@ -215,7 +215,7 @@ def start_smoothing_frames(model, arrays: dict, least_frames: float, most_frames
                            vertex_step: int = 32) -> np.ndarray:
     """(T,) each frame's width of the smoothed start, from `least_frames` up to `most_frames`
     (`adaptive_smoothing_frames` on every `vertex_step`-th vertex of the per-frame fits)."""
-    levels = least_frames * (most_frames / least_frames) ** np.linspace(0.0, 1.0, 4)
+    levels = least_frames * (max(most_frames, least_frames) / least_frames) ** np.linspace(0.0, 1.0, 4)
     body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
     ids = torch.arange(0, model.num_vertices, vertex_step, device=model.faces.device)
     with torch.no_grad():

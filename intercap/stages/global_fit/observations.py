@@ -168,6 +168,13 @@ def smoothed_start(arrays: dict, sigma_frames) -> dict:
     return out
 
 
+def sparse_vertices(model, body: BodyParams, vertex_ids: torch.Tensor, dtype=torch.float32) -> np.ndarray:
+    """(T, U, 3) the vertices `vertex_ids` of every frame of `body`, 256 frames at a time, as numpy."""
+    with torch.no_grad():
+        return np.concatenate([model.sparse_forward(body.map(lambda x: x[lo:lo + 256]), vertex_ids).vertices
+                               .to(dtype).cpu().numpy() for lo in range(0, body.batch_size, 256)])
+
+
 def acceleration_scale(model, body: BodyParams, fps: float, vertex_ids: torch.Tensor, reference_mps2: float,
                        max_scale: float, smoothing_s: float, start_smoothing_s: float, reach_s: float) -> np.ndarray:
     """(T,) the body's acceleration weight per frame, as a factor of its setting: reference / a where the
@@ -182,12 +189,7 @@ def acceleration_scale(model, body: BodyParams, fps: float, vertex_ids: torch.Te
     T = body.batch_size
     if reference_mps2 <= 0 or T < 3:
         return np.ones(T)
-    chunks = []
-    with torch.no_grad():
-        for lo in range(0, T, 256):
-            part = body.map(lambda x: x[lo:lo + 256])
-            chunks.append(model.sparse_forward(part, vertex_ids).vertices.double().cpu().numpy())
-    vertices = np.concatenate(chunks)
+    vertices = sparse_vertices(model, body, vertex_ids, torch.float64)
     extra_frames = np.sqrt(max(smoothing_s ** 2 - start_smoothing_s ** 2, 0.0)) * fps
     if extra_frames >= 0.5:
         vertices = gaussian_filter1d(vertices, extra_frames, axis=0, mode="nearest")
@@ -218,10 +220,7 @@ def start_smoothing_frames(model, arrays: dict, least_frames: float, most_frames
     levels = least_frames * (max(most_frames, least_frames) / least_frames) ** np.linspace(0.0, 1.0, 4)
     body = BodyParams.from_numpy_dict(arrays, dtype=model.dtype, device=model.faces.device)
     ids = torch.arange(0, model.num_vertices, vertex_step, device=model.faces.device)
-    with torch.no_grad():
-        vertices = np.concatenate([model.sparse_forward(body.map(lambda x: x[lo:lo + 256]), ids).vertices.float()
-                                   .cpu().numpy() for lo in range(0, body.batch_size, 256)])
-    return adaptive_smoothing_frames(vertices, levels, confidence)
+    return adaptive_smoothing_frames(sparse_vertices(model, body, ids), levels, confidence)
 
 
 def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repair=None,

@@ -131,6 +131,42 @@ def matrix_to_axis_angle(matrix: torch.Tensor) -> torch.Tensor:
     return roma.rotmat_to_rotvec(matrix)
 
 
+def continuous_axis_angle(rotvecs: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+    """(T, 3) rotation vectors, each valid one replaced by the equivalent vector (the same axis, its angle
+    plus a whole number of turns) nearest the previous valid frame's, so that a person or an object turning
+    past half a turn does not jump by 2 pi: interpolating or averaging them then turns the short way.
+    The others (`valid` False, or not finite) are left as they are."""
+    out = np.array(rotvecs, np.float64)
+    previous = None
+    usable = np.isfinite(out).all(1) & (True if valid is None else np.asarray(valid, bool))
+    for i in np.flatnonzero(usable):
+        angle = float(np.linalg.norm(out[i]))
+        if previous is not None and angle > 1e-9:
+            axis = out[i] / angle
+            turns = np.round((float(previous @ axis) - angle) / (2 * np.pi)) + np.array([-1.0, 0.0, 1.0])
+            options = axis[None] * (angle + 2 * np.pi * turns)[:, None]
+            out[i] = options[np.argmin(np.linalg.norm(options - previous, axis=1))]
+        previous = out[i]
+    return out
+
+
+def fill_axis_angle_gaps(rotvecs: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """(T, 3) rotation vectors with the frames not `valid` interpolated between the nearest valid ones (held
+    at the ends) the short way round (`continuous_axis_angle`), each filled one at most half a turn; the
+    valid frames keep their own."""
+    from scipy.spatial.transform import Rotation
+
+    out = np.array(rotvecs, np.float64)
+    valid = np.asarray(valid, bool) & np.isfinite(out).all(1)
+    if valid.all() or not valid.any():
+        return out
+    turned = continuous_axis_angle(out, valid)
+    t = np.arange(len(out))
+    filled = np.stack([np.interp(t[~valid], t[valid], turned[valid, k]) for k in range(3)], 1)
+    out[~valid] = Rotation.from_rotvec(filled).as_rotvec()
+    return out
+
+
 class BodyModel(torch.nn.Module):
     """Base class of the backends: what every stage may rely on.
 

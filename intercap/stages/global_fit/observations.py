@@ -17,7 +17,8 @@ import torch
 import trimesh
 
 from intercap.body_models import BodyParams
-from intercap.body_models.base import PARAM_FIELDS, axis_angle_to_matrix, matrix_to_axis_angle
+from intercap.body_models.base import (PARAM_FIELDS, axis_angle_to_matrix, continuous_axis_angle, fill_axis_angle_gaps,
+                                       matrix_to_axis_angle)
 from intercap.geometry.cameras import Cameras
 from intercap.geometry.symmetry import mesh_symmetry, unwrap_symmetry
 from intercap.io.files import per_frame_result, save_npz
@@ -254,7 +255,9 @@ def load_per_frame(session, out_dir: Path, model, with_object: bool = True, repa
         repaired = departed_frames(saved["fit_to_data_mm"], body_valid, *repair)
         if repaired.all():  # nothing to start them from
             repaired[:] = False
-    arrays = {k: fill_gaps(saved[k], body_valid & ~repaired).astype(np.float32) for k in PARAM_FIELDS}
+    kept = body_valid & ~repaired
+    arrays = {k: (fill_axis_angle_gaps if k == "global_orient" else fill_gaps)(saved[k], kept).astype(np.float32)
+              for k in PARAM_FIELDS}  # the root turns the short way across a gap
     widths, motion = None, None
     if smoothing_frames >= 0.5:  # below half a frame the filter would hardly touch the fits
         if adaptive_smoothing is not None:
@@ -325,17 +328,7 @@ def _rotvecs(R: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """(T, 3) axis-angle of the valid rotations, made continuous in time (no 2 pi jumps), NaN elsewhere."""
     out = np.full((len(R), 3), np.nan)
     out[valid] = matrix_to_axis_angle(torch.from_numpy(R[valid]).double()).numpy()
-    previous = None
-    for i in np.flatnonzero(valid):  # choose the equivalent axis-angle nearest the previous one
-        if previous is not None:
-            angle = np.linalg.norm(out[i])
-            if angle > 1e-6:
-                alt = out[i] * (1 - 2 * np.pi / angle)
-                if np.linalg.norm(alt - previous) < np.linalg.norm(out[i] - previous):
-                    out[i] = alt
-        previous = out[i]
-    return out
-
+    return continuous_axis_angle(out, valid)
 
 
 def load_contact_labels(out_dir: Path, T: int) -> tuple[np.ndarray, np.ndarray | None]:

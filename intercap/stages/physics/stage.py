@@ -215,7 +215,7 @@ def _td(a) -> torch.Tensor:
 def load_body_params(out_dir: Path, model, T: int):
     """(params with gaps filled and the mean shape, the mean shape, valid (T,)) of OUT/body_params.npz."""
     from intercap.body_models import BodyParams
-    from intercap.body_models.base import PARAM_FIELDS
+    from intercap.body_models.base import PARAM_FIELDS, fill_axis_angle_gaps
 
     saved = dict(np.load(_require(out_dir / "body_params.npz", "global")))
     if str(saved.get("model", model.name)) != model.name:
@@ -227,7 +227,8 @@ def load_body_params(out_dir: Path, model, T: int):
     body_valid &= np.isfinite(saved["transl"]).all(1)
     if not body_valid.any():
         raise PhysicsError(f"{out_dir / 'body_params.npz'}: no frame has a body fit")
-    arrays = {k: kin.fill_gaps(saved[k], body_valid).astype(np.float64) for k in PARAM_FIELDS}
+    arrays = {k: (fill_axis_angle_gaps if k == "global_orient" else kin.fill_gaps)(saved[k], body_valid)
+              .astype(np.float64) for k in PARAM_FIELDS}
     shape = saved["shape_mean"] if "shape_mean" in saved else saved["shape"][body_valid].mean(0)
     arrays["shape"][:] = shape
     return BodyParams.from_numpy_dict(arrays, dtype=model.dtype), shape, body_valid

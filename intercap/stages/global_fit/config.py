@@ -49,6 +49,9 @@ class GlobalConfig:
     # (seconds, `observations.adaptive_smoothing_frames`): a slow turn's start is smoothed widely, a bend's peak kept
     start_smoothing_most_alone_s: float = 0.3
     start_smoothing_confidence_alone: float = 1.0  # its confidence interval, in noise x kernel norms (BENCHMARKS.md)
+    # the same with an object, up to this (BENCHMARKS.md: a raw cup's acceleration); start_smoothing_s: one width
+    start_smoothing_most_s: float = 0.15
+    start_smoothing_confidence: float = 1.0  # its confidence interval
     shape_change_limit_mm: float = 15.0  # mm: the sequence-mean phenotype moving a frame's body more: frames keep their own
     # frames that keep their own phenotype have it low-passed (Gaussian sigma): no step between the body stage's batches
     shape_smoothing_s: float = 0.2  # seconds; 0: off

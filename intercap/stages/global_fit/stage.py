@@ -231,11 +231,12 @@ class GlobalProblem:
         with_object = object_left_out(session, out_dir) is None
         repair = (g.repair_factor, g.repair_floor_mm, g.repair_reach) if g.repair_factor > 0 else None
         smoothing_s = g.start_smoothing_s if with_object else g.start_smoothing_alone_s
+        most_s, confidence = ((g.start_smoothing_most_s, g.start_smoothing_confidence) if with_object else
+                              (g.start_smoothing_most_alone_s, g.start_smoothing_confidence_alone))
+        adaptive = (most_s * session.fps, confidence) if most_s > smoothing_s else None
         self.per_frame = per_frame = load_per_frame(session, out_dir, self.model, with_object, repair,
                                                     g.shape_change_limit_mm, smoothing_s * session.fps,
-                                                    g.shape_smoothing_s * session.fps, None if with_object else (
-                                                        g.start_smoothing_most_alone_s * session.fps,
-                                                        g.start_smoothing_confidence_alone))
+                                                    g.shape_smoothing_s * session.fps, adaptive)
         ground = load_ground(out_dir) if (out_dir / "prepare" / "ground.json").exists() else None
         if ground is None:
             log.warning("global: no ground plane (run the `prepare` stage); E_G is off")
